@@ -1,0 +1,1 @@
+"""cmnav: the `cmnav` console command (a thin dispatcher over the project's packages)."""

@@ -1,0 +1,3 @@
+from cmnav.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,1 @@
+"""cmnav runtime: the flight program on the companion computer (never imports torch)."""

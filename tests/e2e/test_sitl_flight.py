@@ -1,0 +1,57 @@
+"""One full SITL flight: `cmnav sitl` with the goal-seeker, the real processes over loopback."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import pytest
+from mcap.reader import make_reader
+
+from export.goal_seeker import export_goal_seeker
+
+pytestmark = pytest.mark.timeout(240)
+
+
+@pytest.fixture(scope="module")
+def goal_seeker(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("models") / "goal-seeker.onnx"
+    export_goal_seeker(str(path))
+    return path
+
+
+def _sitl(model: Path, out: Path, *extra: str) -> tuple[int, dict, str]:
+    proc = subprocess.run(
+        [sys.executable, "-m", "cmnav", "sitl", "--model", str(model), "--out", str(out), "--json", *extra],
+        capture_output=True, text=True, timeout=200,
+    )  # fmt: skip
+    lines = proc.stdout.strip().splitlines()
+    summary = json.loads(lines[-1]) if lines and lines[-1].startswith("{") else {}
+    return proc.returncode, summary, proc.stderr
+
+
+def test_goal_seeker_reaches_the_goal_at_level_0(goal_seeker, tmp_path):
+    code, summary, stderr = _sitl(goal_seeker, tmp_path, "--level", "0", "--seed", "1", "--timeout", "40")
+    assert code == 0, f"exit {code}; summary {summary}; stderr:\n{stderr[-3000:]}"
+    assert summary["outcome"] == "success"
+    assert summary["final_distance_m"] <= 1.5
+    assert 0 < summary["time_s"] < 40
+    assert summary["path_m"] > 5.0
+    assert summary["frames"] > 0.5 * 15 * summary["time_s"]
+    assert summary["watchdog_trips"] == []
+    assert set(summary["invalid_depth_pct"]) == {"avg", "min", "max"}
+    assert {"p50", "p99"} <= set(summary["step_ms"])
+
+    assert cv2.imread(summary["plot"]) is not None
+    with open(summary["log"], "rb") as f:
+        reader = make_reader(f)
+        topics = {channel.topic for channel in reader.get_summary().channels.values()}
+        counts: dict[str, int] = {}
+        for _, channel, _ in reader.iter_messages():
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+    expected = {"/camera/depth", "/camera/gray", "/vehicle/state", "/policy/observation", "/policy/action",
+                "/vehicle/command", "/policy/latent", "/timing", "/watchdog"}  # fmt: skip
+    assert expected <= topics, f"missing channels: {expected - topics}"
+    for topic in expected - {"/watchdog"}:
+        assert counts.get(topic, 0) > 10, f"{topic}: {counts.get(topic, 0)} messages"

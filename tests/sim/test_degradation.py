@@ -1,0 +1,79 @@
+"""Square-patch depth corruption: coverage, patch sizes, seeding, the paper's presets."""
+
+import pytest
+import torch
+
+from sim.degradation import (
+    RL_TRAINING,
+    S1,
+    S1_COVERAGE_LEVELS,
+    S2,
+    PatchScheme,
+    corrupt_depth,
+    corrupt_with_scheme,
+    evaluation_scheme,
+    patch_masks,
+)
+
+
+def _gen(seed=0):
+    return torch.Generator().manual_seed(seed)
+
+
+@pytest.mark.parametrize("coverage", [0.2, 0.3, 0.4, 0.5])
+def test_evaluation_coverage_is_reached_overshooting_by_at_most_one_patch(coverage):
+    scheme = evaluation_scheme(coverage)
+    masks = patch_masks(torch.full((32,), coverage), scheme, _gen())
+    frac = masks.float().mean(dim=(1, 2))
+    assert torch.all(frac >= coverage)
+    assert torch.all(frac <= coverage + 2 * 50 * 50 / 224**2)
+
+
+def test_zero_coverage_leaves_images_pristine():
+    assert not patch_masks(torch.zeros(4), evaluation_scheme(0.0), _gen()).any()
+
+
+def test_patches_are_squares_of_the_scheme_sides():
+    # One patch only: its bounding box is a square with a side in range.
+    scheme = PatchScheme(50, 100, min_coverage=0.01, max_coverage=0.01)
+    masks = patch_masks(torch.full((16,), 0.01), scheme, _gen(3))
+    for mask in masks:
+        rows, cols = mask.any(dim=1).nonzero(), mask.any(dim=0).nonzero()
+        height, width = int(rows.max() - rows.min() + 1), int(cols.max() - cols.min() + 1)
+        assert height == width and 50 <= height <= 100
+        assert int(mask.sum()) == height * width
+
+
+def test_same_seed_same_masks_other_seed_other_masks():
+    cov = torch.full((8,), 0.3)
+    a = patch_masks(cov, RL_TRAINING, _gen(1))
+    b = patch_masks(cov, RL_TRAINING, _gen(1))
+    c = patch_masks(cov, RL_TRAINING, _gen(2))
+    assert torch.equal(a, b) and not torch.equal(a, c)
+
+
+def test_s2_half_pristine_and_coverage_range():
+    coverage = S2.sample_coverage(4000, _gen())
+    pristine = coverage == 0
+    assert 0.45 < pristine.float().mean() < 0.55
+    assert coverage[~pristine].min() >= 0.2 and coverage[~pristine].max() <= 0.5
+
+
+def test_s1_coverage_shares():
+    coverage = S1.sample_coverage(20000, _gen())
+    share_50 = (coverage == 0.5).float().mean()
+    assert torch.isclose(coverage.unique(), torch.tensor(S1_COVERAGE_LEVELS)).all()
+    assert 0.28 < share_50 < 0.32
+
+
+def test_corrupt_sets_invalid_zero_and_keeps_the_rest():
+    depth = torch.rand(6, 1, 224, 224) * 0.9 + 0.05
+    out, masks = corrupt_with_scheme(depth, RL_TRAINING, _gen())
+    assert torch.all(out[:, 0][masks] == 0.0)
+    assert torch.equal(out[:, 0][~masks], depth[:, 0][~masks])
+    assert corrupt_depth(depth[:, 0], masks).shape == (6, 224, 224)
+
+
+def test_bad_scheme_is_named():
+    with pytest.raises(ValueError, match="patch sides"):
+        patch_masks(torch.full((1,), 0.2), PatchScheme(0, 10, 0.2, 0.2), _gen())

@@ -1,0 +1,1 @@
+"""cmnav training: the CMWAE encoder and the recurrent PPO policy."""

@@ -22,6 +22,15 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_dataset(args: argparse.Namespace) -> int:
+    from training.data.generate import DatasetSpec, generate_dataset
+
+    spec = DatasetSpec(count=args.count, seed=args.seed, levels=tuple(args.levels), frames_per_room=args.frames_per_room)
+    manifest = generate_dataset(args.out, spec)
+    print(f"wrote {manifest['frames']} gray/depth pairs from {manifest['rooms']} rooms to {args.out} (TartanAir V1 layout)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="cmnav",
@@ -45,6 +54,20 @@ def build_parser() -> argparse.ArgumentParser:
     sitl.add_argument("--out", default="runs/sitl", help="directory for the log, plot and summaries (default runs/sitl)")
     sitl.add_argument("--json", action="store_true", help="print the summary as one JSON object on the last line")
     sitl.set_defaults(func=_cmd_sitl)
+
+    dataset = sub.add_parser(
+        "dataset",
+        help="render gray/depth pairs from the simulated world (TartanAir V1 layout)",
+        description="Render gray/depth pairs from random collision-free poses in random rooms across "
+        "curriculum levels; one room is one trajectory (ENV/Easy/P000), so splits are by room.",
+    )
+    dataset.add_argument("--out", required=True, help="output directory")
+    dataset.add_argument("--count", type=int, required=True, help="number of pairs")
+    dataset.add_argument("--seed", type=int, default=0, help="seed of rooms, poses and camera jitter")
+    dataset.add_argument("--levels", type=int, nargs="+", default=[0, 2, 5, 10, 15, 20],
+                         help="curriculum levels (obstacle counts), cycled over rooms")  # fmt: skip
+    dataset.add_argument("--frames-per-room", type=int, default=16, help="views per room (default 16)")
+    dataset.set_defaults(func=_cmd_dataset)
 
     export = sub.add_parser("export", help="write an ONNX model for the runtime")
     export_sub = export.add_subparsers(dest="what", required=True, metavar="WHAT")

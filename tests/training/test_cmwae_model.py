@@ -70,7 +70,7 @@ def test_loss_trains_down():
         opt.zero_grad()
         out["loss"].backward()
         opt.step()
-        losses.append(float(out["recon_mse"]))
+        losses.append(float(out["recon_mse"].detach()))
     assert losses[-1] < 0.5 * losses[0]
 
 

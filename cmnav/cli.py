@@ -31,6 +31,36 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train_cmwae(args: argparse.Namespace) -> int:
+    from training.cmwae.train import CmwaeTrainConfig, train_cmwae
+
+    config = CmwaeTrainConfig(
+        data_dir=args.data, out_dir=args.out, scheme=args.scheme, modalities=tuple(args.modalities.split(",")),
+        size=args.size, steps=args.steps, epochs=args.epochs if args.steps is None else None,
+        batch_size=args.batch_size, lr=args.lr, mmd_weight=args.mmd_weight, seed=args.seed, device=args.device,
+        workers=args.workers, checkpoint_every=args.checkpoint_every, resume=args.resume,
+    )  # fmt: skip
+    out = train_cmwae(config)
+    print(f"checkpoint in {out}")
+    return 0
+
+
+def _cmd_eval_cmwae(args: argparse.Namespace) -> int:
+    import json
+
+    from training.cmwae.evaluate import CmwaeEvalConfig, evaluate_cmwae
+
+    result = evaluate_cmwae(
+        CmwaeEvalConfig(checkpoint=args.checkpoint, data_dir=args.data, split=args.split, out_dir=args.out,
+                        device=args.device, max_images=args.max_images, seed=args.seed)  # fmt: skip
+    )
+    print(result["table"])
+    print(f"MSE at 50% / 0%: {result['mse_ratio_50_over_0']}; plots in {result['plots']['mse'].rsplit('/', 1)[0]}")
+    if args.json:
+        print(json.dumps(result))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="cmnav",
@@ -68,6 +98,46 @@ def build_parser() -> argparse.ArgumentParser:
                          help="curriculum levels (obstacle counts), cycled over rooms")  # fmt: skip
     dataset.add_argument("--frames-per-room", type=int, default=16, help="views per room (default 16)")
     dataset.set_defaults(func=_cmd_dataset)
+
+    train = sub.add_parser("train", help="train the CMWAE encoder or the policy")
+    train_sub = train.add_subparsers(dest="what", required=True, metavar="WHAT")
+    cmwae = train_sub.add_parser(
+        "cmwae",
+        help="train the cross-modal encoder (WAE-MMD) with depth corruption on the fly",
+        description="Train the CMWAE on gray/depth pairs (TartanAir V1/V2 layout, e.g. from `cmnav dataset`). "
+        "Multi-GPU: `torchrun --nproc_per_node=N -m cmnav train cmwae ... --device cuda`.",
+    )
+    cmwae.add_argument("--data", required=True, help="dataset directory")
+    cmwae.add_argument("--scheme", choices=["s1", "s2", "none"], default="s2", help="training corruption (none: the clean-depth baseline)")
+    cmwae.add_argument("--out", required=True, help="checkpoint directory (model.json + fp16 shards + train state)")
+    cmwae.add_argument("--modalities", default="gray,depth", choices=["gray,depth", "depth"],
+                       help="encoder inputs; 'depth' = the depth-only baseline (DCE-RL stand-in)")  # fmt: skip
+    cmwae.add_argument("--size", default="paper", choices=["paper", "small", "tiny"], help="network width (paper = AlexNet)")
+    length = cmwae.add_mutually_exclusive_group()
+    length.add_argument("--steps", type=int, help="optimizer steps")
+    length.add_argument("--epochs", type=int, default=10, help="epochs over the train split (default 10)")
+    cmwae.add_argument("--batch-size", type=int, default=64)
+    cmwae.add_argument("--lr", type=float, default=1e-4)
+    cmwae.add_argument("--mmd-weight", type=float, default=10.0, help="lambda of the MMD term")
+    cmwae.add_argument("--seed", type=int, default=0)
+    cmwae.add_argument("--device", default="cpu", help="cpu or cuda")
+    cmwae.add_argument("--workers", type=int, default=2, help="data-loading processes")
+    cmwae.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints")
+    cmwae.add_argument("--resume", action="store_true", help="continue from the train state in --out")
+    cmwae.set_defaults(func=_cmd_train_cmwae)
+
+    evaluate = sub.add_parser("eval", help="evaluate a trained encoder (Table I) or policy (Table II)")
+    eval_sub = evaluate.add_subparsers(dest="what", required=True, metavar="WHAT")
+    eval_cmwae = eval_sub.add_parser("cmwae", help="Table I: MSE/SSIM at 0-50%% evaluation corruption on the held-out split")
+    eval_cmwae.add_argument("--checkpoint", required=True, help="checkpoint directory")
+    eval_cmwae.add_argument("--data", required=True, help="dataset directory")
+    eval_cmwae.add_argument("--split", default="test", choices=["train", "val", "test"])
+    eval_cmwae.add_argument("--out", help="directory for plots and table1.json (default CHECKPOINT/eval)")
+    eval_cmwae.add_argument("--device", default="cpu")
+    eval_cmwae.add_argument("--max-images", type=int, help="evaluate at most this many images")
+    eval_cmwae.add_argument("--seed", type=int, default=0, help="seed of the evaluation patches")
+    eval_cmwae.add_argument("--json", action="store_true", help="print the result as JSON on the last line")
+    eval_cmwae.set_defaults(func=_cmd_eval_cmwae)
 
     export = sub.add_parser("export", help="write an ONNX model for the runtime")
     export_sub = export.add_subparsers(dest="what", required=True, metavar="WHAT")

@@ -42,6 +42,22 @@ class CmwaeConfig:
             raise ValueError(f"alexnet_channels={self.alexnet_channels}: five widths ending in 256")
 
 
+# Network sizes: the paper's, and narrower ones for CPU-only runs and tests (same structure).
+SIZE_PRESETS: dict[str, dict] = {
+    "paper": {},
+    "small": {"embed_dim": 256, "alexnet_channels": (32, 96, 192, 128, 256), "decoder_channels": (64, 32, 16)},
+    "tiny": {"embed_dim": 32, "alexnet_channels": (8, 16, 16, 16, 256), "decoder_channels": (16, 8, 4)},
+}
+
+
+def make_config(size: str = "paper", modalities: tuple[str, ...] = MODALITIES) -> CmwaeConfig:
+    if size not in SIZE_PRESETS:
+        raise ValueError(f"size={size!r} must be one of {sorted(SIZE_PRESETS)}")
+    config = CmwaeConfig(modalities=tuple(modalities), **SIZE_PRESETS[size])
+    config.validate()
+    return config
+
+
 def alexnet_features(channels: tuple[int, int, int, int, int]) -> nn.Sequential:
     """AlexNet's convolutional stack for one input channel: 224x224 -> channels[-1] x 6 x 6."""
     c1, c2, c3, c4, c5 = channels

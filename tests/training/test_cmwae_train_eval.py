@@ -1,0 +1,91 @@
+"""`cmnav train cmwae` and `cmnav eval cmwae` for a few steps on tiny data the test generates."""
+
+import json
+import os
+import socket
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from training.checkpoint import MAX_SHARD_BYTES, load_train_state, read_card
+from training.cmwae.model import Cmwae, make_config
+from training.cmwae.train import load_cmwae
+from training.data.generate import DatasetSpec, generate_dataset
+
+pytestmark = pytest.mark.timeout(300)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("data")
+    generate_dataset(root, DatasetSpec(count=40, seed=0, levels=(0, 6), frames_per_room=4))
+    return root
+
+
+def _cmnav(*args):
+    proc = subprocess.run([sys.executable, "-m", "cmnav", *args], capture_output=True, text=True, timeout=280)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc.stdout
+
+
+TRAIN = ["train", "cmwae", "--size", "tiny", "--batch-size", "4", "--workers", "0", "--checkpoint-every", "2"]
+
+
+def test_train_checkpoint_resume_and_eval(dataset, tmp_path):
+    out = tmp_path / "s2"
+    _cmnav(*TRAIN, "--data", str(dataset), "--scheme", "s2", "--out", str(out), "--steps", "3")
+    card = read_card(out, "cmwae")
+    assert card["step"] == 3 and card["meta"]["train"]["scheme"] == "s2"
+    assert all((out / shard).stat().st_size <= MAX_SHARD_BYTES for shard in card["shards"])
+    assert list((out / "tensorboard").glob("events.out.tfevents.*"))
+    first = {k: v.clone() for k, v in load_cmwae(out)[0].state_dict().items()}
+
+    _cmnav(*TRAIN, "--data", str(dataset), "--scheme", "s2", "--out", str(out), "--steps", "5", "--resume")
+    assert read_card(out, "cmwae")["step"] == 5 and load_train_state(out)["step"] == 5
+    resumed = load_cmwae(out)[0].state_dict()
+    assert any(not torch.equal(first[k], resumed[k]) for k in first)
+
+    stdout = _cmnav("eval", "cmwae", "--checkpoint", str(out), "--data", str(dataset), "--max-images", "3", "--json")
+    result = json.loads(stdout.strip().splitlines()[-1])
+    assert [r["corruption_pct"] for r in result["rows"]] == [0, 20, 30, 40, 50]
+    assert all(r["images"] == 3 for r in result["rows"])
+    assert all(0 < r["mse_e3"] for r in result["rows"]) and all(-100 <= r["ssim_e2"] <= 100 for r in result["rows"])
+    assert result["rows"][4]["actual_coverage_pct"] >= 50.0
+    assert "| 50% |" in result["table"]
+    for plot in result["plots"].values():
+        assert os.path.getsize(plot) > 1000
+
+
+def test_depth_only_baseline_uses_the_same_command(dataset, tmp_path):
+    out = tmp_path / "dce"
+    _cmnav(*TRAIN, "--data", str(dataset), "--scheme", "none", "--modalities", "depth", "--out", str(out), "--steps", "2")
+    model, card = load_cmwae(out)
+    assert tuple(card["config"]["modalities"]) == ("depth",) and "gray" not in model.encoder.features
+
+
+def test_fp16_shards_roundtrip(tmp_path):
+    from training.checkpoint import load_weights, save_weights
+
+    model = Cmwae(make_config("small"))
+    save_weights(tmp_path, model, "cmwae", {}, 0)
+    assert len(list(tmp_path.glob("weights-*.pt"))) >= 1
+    copy = Cmwae(make_config("small"))
+    load_weights(tmp_path, copy)
+    for (name, a), b in zip(model.state_dict().items(), copy.state_dict().values()):
+        torch.testing.assert_close(a.half().float(), b, msg=name)
+
+
+def test_multi_process_torchrun_on_cpu(dataset, tmp_path):
+    out = tmp_path / "ddp"
+    with socket.socket() as sock:  # a free loopback port for the rendezvous
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    proc = subprocess.run(
+        [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--master_addr=127.0.0.1",
+         f"--master_port={port}", "-m", "cmnav", *TRAIN, "--data", str(dataset), "--out", str(out), "--steps", "2"],
+        capture_output=True, text=True, timeout=280, env=dict(os.environ, GLOO_SOCKET_IFNAME="lo"),
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert read_card(out, "cmwae")["meta"]["world_size"] == 2

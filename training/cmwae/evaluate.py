@@ -1,0 +1,148 @@
+"""`cmnav eval cmwae`: Table I — mean depth-reconstruction MSE and SSIM on the held-out split at
+0/20/30/40/50 % evaluation corruption (square patches of side 1..50 px), as a markdown table like
+the paper's, plus MSE/SSIM box plots and a grid of example inputs and reconstructions."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from pytorch_msssim import ssim
+from torch.utils.data import DataLoader
+
+from sim.degradation import EVALUATION_COVERAGES, corrupt_depth, evaluation_scheme, patch_masks
+
+from ..data.tartanair import GrayDepthDataset
+from .train import load_cmwae
+
+
+@dataclass(frozen=True)
+class CmwaeEvalConfig:
+    checkpoint: str
+    data_dir: str
+    split: str = "test"
+    out_dir: str | None = None  # plots; default <checkpoint>/eval
+    device: str = "cpu"
+    batch_size: int = 32
+    max_images: int | None = None
+    seed: int = 0
+    coverages: tuple[float, ...] = EVALUATION_COVERAGES
+
+
+@torch.no_grad()
+def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
+    model, card = load_cmwae(config.checkpoint, config.device)
+    dataset = GrayDepthDataset(config.data_dir, config.split)
+    loader = DataLoader(dataset, batch_size=config.batch_size, num_workers=0)
+    per_coverage: dict[float, dict[str, list[float]]] = {}
+    examples: dict[float, tuple] = {}
+    for coverage in config.coverages:
+        generator = torch.Generator().manual_seed(config.seed)  # same patches for every model
+        mse, sim, actual = [], [], []
+        seen = 0
+        for gray, depth in loader:
+            if config.max_images is not None:
+                if seen >= config.max_images:
+                    break
+                gray, depth = gray[: config.max_images - seen], depth[: config.max_images - seen]
+            masks = patch_masks(torch.full((depth.shape[0],), coverage), evaluation_scheme(coverage), generator)
+            corrupted = corrupt_depth(depth, masks)
+            _, recon = model(gray.to(config.device), corrupted.to(config.device))
+            recon = recon.float().cpu()
+            mse += ((recon - depth) ** 2).mean(dim=(1, 2, 3)).tolist()
+            sim += ssim(recon, depth, data_range=1.0, size_average=False).tolist()
+            actual += masks.float().mean(dim=(1, 2)).tolist()
+            if coverage not in examples:
+                examples[coverage] = (gray[:4], corrupted[:4], recon[:4], depth[:4])
+            seen += depth.shape[0]
+        per_coverage[coverage] = {"mse": mse, "ssim": sim, "coverage": actual}
+    rows = [
+        {
+            "corruption_pct": int(round(c * 100)),
+            "actual_coverage_pct": round(100 * float(np.mean(v["coverage"])), 2),
+            "mse_e3": round(1e3 * float(np.mean(v["mse"])), 3),
+            "ssim_e2": round(1e2 * float(np.mean(v["ssim"])), 2),
+            "images": len(v["mse"]),
+        }
+        for c, v in per_coverage.items()
+    ]
+    out = Path(config.out_dir) if config.out_dir else Path(config.checkpoint) / "eval"
+    out.mkdir(parents=True, exist_ok=True)
+    labels = [f"{r['corruption_pct']}%" for r in rows]
+    box_plot(out / "mse_boxplot.png", labels, [1e3 * np.asarray(v["mse"]) for v in per_coverage.values()], "MSE x1e-3")
+    box_plot(out / "ssim_boxplot.png", labels, [1e2 * np.asarray(v["ssim"]) for v in per_coverage.values()], "SSIM x1e-2")
+    example_grid(out / "examples.png", examples)
+    result = {
+        "checkpoint": str(config.checkpoint),
+        "scheme": card["meta"].get("train", {}).get("scheme"),
+        "modalities": card["config"]["modalities"],
+        "step": card["step"],
+        "split": config.split,
+        "rows": rows,
+        "table": markdown_table(rows),
+        "mse_ratio_50_over_0": _ratio(rows),
+        "plots": {"mse": str(out / "mse_boxplot.png"), "ssim": str(out / "ssim_boxplot.png"), "examples": str(out / "examples.png")},
+    }
+    (out / "table1.json").write_text(json.dumps(result, indent=2))
+    return result
+
+
+def _ratio(rows: list[dict]) -> float | None:
+    by = {r["corruption_pct"]: r["mse_e3"] for r in rows}
+    return round(by[50] / by[0], 3) if 0 in by and 50 in by and by[0] > 0 else None
+
+
+def markdown_table(rows: list[dict]) -> str:
+    lines = ["| corruption | MSE (x10^-3) | SSIM (x10^-2) | images |", "|---|---|---|---|"]
+    lines += [f"| {r['corruption_pct']}% | {r['mse_e3']:.2f} | {r['ssim_e2']:.2f} | {r['images']} |" for r in rows]
+    return "\n".join(lines)
+
+
+def box_plot(path: Path, labels: list[str], series: list[np.ndarray], ylabel: str) -> None:
+    """Box plots (median, quartiles, whiskers at 1.5 IQR) drawn with OpenCV."""
+    width, height, margin = 120 * len(series) + 100, 420, 60
+    image = np.full((height, width, 3), 255, np.uint8)
+    lo = min(float(np.min(s)) for s in series if len(s))
+    hi = max(float(np.max(s)) for s in series if len(s))
+    span = hi - lo if hi > lo else 1.0
+
+    def y(v: float) -> int:
+        return int(height - margin - (v - lo) / span * (height - 2 * margin))
+
+    for i, (label, values) in enumerate(zip(labels, series)):
+        x = 100 + i * 120
+        if len(values):
+            q1, med, q3 = np.percentile(values, [25, 50, 75])
+            iqr = q3 - q1
+            low = float(np.min(values[values >= q1 - 1.5 * iqr]))
+            high = float(np.max(values[values <= q3 + 1.5 * iqr]))
+            cv2.line(image, (x, y(low)), (x, y(high)), (0, 0, 0), 1)
+            cv2.rectangle(image, (x - 30, y(q3)), (x + 30, y(q1)), (230, 200, 160), -1)
+            cv2.rectangle(image, (x - 30, y(q3)), (x + 30, y(q1)), (0, 0, 0), 1)
+            cv2.line(image, (x - 30, y(med)), (x + 30, y(med)), (0, 0, 200), 2)
+            for outlier in values[(values < low) | (values > high)][:200]:
+                cv2.circle(image, (x, y(float(outlier))), 2, (80, 80, 80), -1)
+        cv2.putText(image, label, (x - 18, height - 25), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1)
+    for v in np.linspace(lo, hi, 5):
+        cv2.putText(image, f"{v:.3g}", (5, y(float(v)) + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1)
+    cv2.putText(image, f"{ylabel} by corruption", (margin, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1)
+    cv2.imwrite(str(path), image)
+
+
+def example_grid(path: Path, examples: dict[float, tuple]) -> None:
+    """Rows: coverage x example; columns: gray, corrupted depth input, reconstruction, target."""
+    rows = []
+    for coverage, (gray, corrupted, recon, depth) in examples.items():
+        for k in range(gray.shape[0]):
+            tiles = [(t[k, 0].numpy() * 255).clip(0, 255).astype(np.uint8) for t in (gray, corrupted, recon, depth)]
+            row = np.hstack([cv2.resize(t, (112, 112), interpolation=cv2.INTER_AREA) for t in tiles])
+            cv2.putText(row, f"{int(coverage * 100)}%", (3, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, 255, 1)
+            rows.append(row)
+    header = np.full((18, 448), 255, np.uint8)
+    for i, name in enumerate(("gray", "depth in", "recon", "target")):
+        cv2.putText(header, name, (i * 112 + 4, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.4, 0, 1)
+    cv2.imwrite(str(path), np.vstack([header, *rows]))

@@ -1,0 +1,186 @@
+"""`cmnav train cmwae`: WAE-MMD training of the CMWAE (or the depth-only baseline encoder) with
+depth corruption applied on the fly; progress, TensorBoard scalars, periodic checkpoints,
+resume, and multi-GPU through torchrun (DistributedDataParallel)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+from torch.nn.parallel import DistributedDataParallel
+from torch.utils.data import DataLoader
+from torch.utils.data.distributed import DistributedSampler
+
+from sim.degradation import SCHEMES, corrupt_depth, corrupt_with_scheme, evaluation_scheme, patch_masks
+
+from ..checkpoint import load_train_state, load_weights, read_card, save_train_state, save_weights
+from ..data.tartanair import GrayDepthDataset
+from ..distributed import DistInfo, all_reduce_mean, init_distributed, shutdown
+from ..progress import Progress
+from ..tensorboard import ScalarWriter
+from .loss import cmwae_loss
+from .model import MODALITIES, Cmwae, CmwaeConfig, make_config
+
+log = logging.getLogger(__name__)
+CHECKPOINT_KIND = "cmwae"
+CORRUPTION_SCHEMES = ("s1", "s2", "none")
+
+
+@dataclass(frozen=True)
+class CmwaeTrainConfig:
+    data_dir: str
+    out_dir: str
+    scheme: str = "s2"
+    modalities: tuple[str, ...] = MODALITIES
+    size: str = "paper"
+    steps: int | None = None
+    epochs: int | None = None
+    batch_size: int = 64
+    lr: float = 1e-4
+    mmd_weight: float = 10.0
+    seed: int = 0
+    device: str = "cpu"
+    workers: int = 2
+    checkpoint_every: int = 500
+    log_every: int = 10
+    val_images: int = 256
+    resume: bool = False
+
+    def validate(self) -> None:
+        if self.scheme not in CORRUPTION_SCHEMES:
+            raise ValueError(f"scheme={self.scheme!r} must be one of {CORRUPTION_SCHEMES}")
+        if (self.steps is None) == (self.epochs is None):
+            raise ValueError("give exactly one of steps or epochs")
+        for key in ("batch_size", "checkpoint_every", "log_every"):
+            if getattr(self, key) < 1:
+                raise ValueError(f"{key}={getattr(self, key)} must be >= 1")
+        if (self.steps or 1) < 1 or (self.epochs or 1) < 1:
+            raise ValueError("steps and epochs must be >= 1")
+
+
+def _corrupt(depth: torch.Tensor, scheme: str, generator: torch.Generator) -> torch.Tensor:
+    if scheme == "none":
+        return depth
+    corrupted, _ = corrupt_with_scheme(depth, SCHEMES[scheme], generator)
+    return corrupted
+
+
+@torch.no_grad()
+def validation_mse(model: Cmwae, loader: DataLoader, device: torch.device, coverage: float, max_images: int, seed: int) -> float:
+    """Mean reconstruction MSE on up to max_images with Table I's evaluation corruption."""
+    model.eval()
+    generator = torch.Generator().manual_seed(seed)
+    total, count = 0.0, 0
+    for gray, depth in loader:
+        if count >= max_images:
+            break
+        masks = patch_masks(torch.full((depth.shape[0],), coverage), evaluation_scheme(coverage), generator)
+        corrupted = corrupt_depth(depth, masks)
+        _, recon = model(gray.to(device), corrupted.to(device))
+        total += float(((recon.cpu() - depth) ** 2).mean(dim=(1, 2, 3)).sum())
+        count += depth.shape[0]
+    model.train()
+    return total / max(count, 1)
+
+
+def train_cmwae(config: CmwaeTrainConfig) -> Path:
+    """Train; returns the checkpoint directory."""
+    config.validate()
+    info, device = init_distributed(config.device)
+    try:
+        return _train(config, info, device)
+    finally:
+        shutdown(info)
+
+
+def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Path:
+    out = Path(config.out_dir)
+    torch.manual_seed(config.seed)
+    train_set = GrayDepthDataset(config.data_dir, "train")
+    val_set = GrayDepthDataset(config.data_dir, "val")
+    sampler = DistributedSampler(train_set, seed=config.seed) if info.enabled else None
+    loader_generator = torch.Generator().manual_seed(config.seed)
+    loader = DataLoader(train_set, batch_size=config.batch_size, shuffle=sampler is None, sampler=sampler,
+                        num_workers=config.workers, drop_last=len(train_set) >= config.batch_size,
+                        generator=loader_generator, persistent_workers=config.workers > 0)  # fmt: skip
+    val_loader = DataLoader(val_set, batch_size=config.batch_size, num_workers=0)
+    total_steps = config.steps if config.steps is not None else config.epochs * len(loader)
+
+    model_config = make_config(config.size, config.modalities)
+    model = Cmwae(model_config).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
+    corruption_generator = torch.Generator().manual_seed(config.seed * 1000 + info.rank)
+    loss_generator = torch.Generator(device=device).manual_seed(config.seed * 1000 + info.rank + 1)
+    step, epoch = 0, 0
+    state = load_train_state(out) if config.resume else None
+    if state is not None:
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        step, epoch = state["step"], state["epoch"]
+        corruption_generator.set_state(state["corruption_rng"])
+        log.info("resumed %s at step %d", out, step)
+    elif config.resume:
+        log.warning("--resume: no training state in %s, starting from scratch", out)
+    ddp_model = DistributedDataParallel(model) if info.enabled else model
+    writer = ScalarWriter(out / "tensorboard") if info.is_main else None
+    progress = Progress(total_steps, f"train cmwae ({config.scheme}, {'+'.join(config.modalities)})", unit="steps") if info.is_main else None
+    if progress is not None:
+        progress.count = step
+    meta = {"train": asdict(config), "world_size": info.world_size, "dataset": str(config.data_dir)}
+
+    def checkpoint() -> None:
+        val = {f"val/mse_{int(c * 100)}pct": validation_mse(model, val_loader, device, c, config.val_images, config.seed) for c in (0.0, 0.5)}
+        if writer is not None:
+            writer.add_scalars(step, val)
+            save_weights(out, model, CHECKPOINT_KIND, asdict(model_config), step, {**meta, **val})
+            save_train_state(out, {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
+                                   "epoch": epoch, "corruption_rng": corruption_generator.get_state()})  # fmt: skip
+
+    t_last, images = time.monotonic(), 0
+    model.train()
+    while step < total_steps:
+        if sampler is not None:
+            sampler.set_epoch(epoch)
+        for gray, depth in loader:
+            if step >= total_steps:
+                break
+            corrupted = _corrupt(depth, config.scheme, corruption_generator)
+            gray, depth, corrupted = gray.to(device), depth.to(device), corrupted.to(device)
+            z, recon = ddp_model(gray, corrupted)
+            losses = cmwae_loss(recon, depth, z, config.mmd_weight, loss_generator)
+            optimizer.zero_grad(set_to_none=True)
+            losses["loss"].backward()
+            optimizer.step()
+            step += 1
+            images += gray.shape[0] * info.world_size
+            if step % config.log_every == 0 or step == total_steps:
+                values = {k: float(all_reduce_mean(v.detach(), info)) for k, v in losses.items()}
+                now = time.monotonic()
+                if writer is not None:
+                    writer.add_scalars(step, {f"train/{k}": v for k, v in values.items()} | {"train/images_per_s": images / (now - t_last)})
+                t_last, images = now, 0
+                if progress is not None:
+                    progress.update(0, loss=values["loss"], mse=values["recon_mse"], mmd=values["mmd"])
+            if progress is not None:
+                progress.update(1)
+            if step % config.checkpoint_every == 0 and step < total_steps:
+                checkpoint()
+        epoch += 1
+    checkpoint()
+    if progress is not None:
+        progress.close()
+    if writer is not None:
+        writer.close()
+    return out
+
+
+def load_cmwae(ckpt_dir: str | Path, device: str | torch.device = "cpu") -> tuple[Cmwae, dict]:
+    """The trained network (eval mode) and its card."""
+    card = read_card(ckpt_dir, CHECKPOINT_KIND)
+    config = card["config"]
+    model = Cmwae(CmwaeConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in config.items()}))
+    load_weights(ckpt_dir, model)
+    return model.to(device).eval(), card

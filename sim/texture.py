@@ -30,12 +30,35 @@ _FINE_WAVELENGTH_M = (0.25, 0.6)
 _FINE_AMPLITUDE = (0.03, 0.10)
 _TILE_SIZE_M = (0.25, 1.0)
 _TILE_AMPLITUDE = (0.0, 0.15)
-_MIN_ALBEDO = 0.02
+MIN_ALBEDO = 0.02
 
 
 def box_surface_id(slot: Tensor, face: Tensor) -> Tensor:
     """Surface id of face(s) 0..5 (2 * local axis + (1 if on the + side)) of box slot(s)."""
     return ROOM_SURFACE_COUNT + FACES_PER_BOX * slot + face
+
+
+# Per-surface texture parameters, in the order of TEXTURE_PARAMETER_RANGES (low, high):
+# base albedo; coarse grating orientation (rad), wavelength (m), phase (rad), amplitude; the
+# same four for the fine grating; checker tile size (m) and amplitude.
+TEXTURE_PARAMETER_RANGES: tuple[tuple[float, float], ...] = (
+    _BASE_ALBEDO,
+    (0.0, math.pi),
+    _COARSE_WAVELENGTH_M,
+    (0.0, 2.0 * math.pi),
+    _COARSE_AMPLITUDE,
+    (0.0, math.pi),
+    _FINE_WAVELENGTH_M,
+    (0.0, 2.0 * math.pi),
+    _FINE_AMPLITUDE,
+    _TILE_SIZE_M,
+    _TILE_AMPLITUDE,
+)
+TEXTURE_PARAMETER_COUNT = len(TEXTURE_PARAMETER_RANGES)
+# Index of the first of a grating's four parameters (orientation, wavelength, phase, amplitude).
+GRATING_FIRST_PARAMETER = (1, 5)
+TILE_SIZE_PARAMETER = 9
+TILE_AMPLITUDE_PARAMETER = 10
 
 
 def _hash_u32(x: Tensor) -> Tensor:
@@ -45,30 +68,40 @@ def _hash_u32(x: Tensor) -> Tensor:
     return (x >> 16) ^ x
 
 
-def _uniform(key: Tensor, index: int, low: float, high: float) -> Tensor:
-    """Parameter ``index`` of the surfaces with hash ``key``, uniform in [low, high), float32."""
+def surface_parameters(texture_seed: Tensor, surface_id: Tensor) -> Tensor:
+    """[..., TEXTURE_PARAMETER_COUNT] float32 texture parameters of the given surfaces.
+
+    texture_seed and surface_id are int64 and broadcast together; parameter i is uniform in
+    TEXTURE_PARAMETER_RANGES[i] (float32 arithmetic, identical on every device).
+    """
+    key = _hash_u32((texture_seed & _U32) ^ _hash_u32(surface_id & _U32)).unsqueeze(-1)
+    index = torch.arange(TEXTURE_PARAMETER_COUNT, dtype=torch.int64, device=key.device)
     bits = _hash_u32(key ^ ((index + 1) * 0x27D4EB2D & _U32))
-    return low + (high - low) * (bits.to(torch.float32) * (1.0 / 2**32))
+    low = torch.tensor([r[0] for r in TEXTURE_PARAMETER_RANGES], dtype=torch.float32, device=key.device)
+    span = torch.tensor([r[1] - r[0] for r in TEXTURE_PARAMETER_RANGES], dtype=torch.float32, device=key.device)
+    return low + span * (bits.to(torch.float32) * (1.0 / 2**32))
+
+
+def albedo_from_parameters(parameters: Tensor, s_m: Tensor, t_m: Tensor) -> Tensor:
+    """Albedo in [MIN_ALBEDO, 1] (float32) at in-plane coordinates (s_m, t_m) (metres) of the
+    surfaces with ``parameters`` [..., TEXTURE_PARAMETER_COUNT] (from :func:`surface_parameters`)."""
+    s = s_m.to(torch.float32)
+    t = t_m.to(torch.float32)
+    p = parameters.unbind(-1)
+    albedo = p[0]
+    for first in GRATING_FIRST_PARAMETER:
+        theta, wavelength, phase, amplitude = p[first : first + 4]
+        phase_arg = (s * torch.cos(theta) + t * torch.sin(theta)) / wavelength
+        albedo = albedo + amplitude * torch.sin(2.0 * math.pi * phase_arg + phase)
+    tile = p[TILE_SIZE_PARAMETER]
+    parity = (torch.floor(s / tile) + torch.floor(t / tile)).remainder(2.0)
+    albedo = albedo + p[TILE_AMPLITUDE_PARAMETER] * (2.0 * parity - 1.0)
+    return albedo.clamp(MIN_ALBEDO, 1.0)
 
 
 def surface_albedo(texture_seed: Tensor, surface_id: Tensor, s_m: Tensor, t_m: Tensor) -> Tensor:
-    """Albedo in [0.02, 1] (float32) of the given surfaces at in-plane coordinates (s_m, t_m).
+    """Albedo in [MIN_ALBEDO, 1] (float32) of the given surfaces at in-plane coordinates (s_m, t_m).
 
     texture_seed and surface_id are int64, s_m and t_m float (metres); all broadcast together.
     """
-    key = _hash_u32((texture_seed & _U32) ^ _hash_u32(surface_id & _U32))
-    s = s_m.to(torch.float32)
-    t = t_m.to(torch.float32)
-    albedo = _uniform(key, 0, *_BASE_ALBEDO)
-    for octave, (wavelength, amplitude) in enumerate(
-        [(_COARSE_WAVELENGTH_M, _COARSE_AMPLITUDE), (_FINE_WAVELENGTH_M, _FINE_AMPLITUDE)]
-    ):
-        first = 1 + 4 * octave
-        theta = _uniform(key, first, 0.0, math.pi)
-        phase_arg = (s * torch.cos(theta) + t * torch.sin(theta)) / _uniform(key, first + 1, *wavelength)
-        grating = torch.sin(2.0 * math.pi * phase_arg + _uniform(key, first + 2, 0.0, 2.0 * math.pi))
-        albedo = albedo + _uniform(key, first + 3, *amplitude) * grating
-    tile = _uniform(key, 9, *_TILE_SIZE_M)
-    parity = (torch.floor(s / tile) + torch.floor(t / tile)).remainder(2.0)
-    albedo = albedo + _uniform(key, 10, *_TILE_AMPLITUDE) * (2.0 * parity - 1.0)
-    return albedo.clamp(_MIN_ALBEDO, 1.0)
+    return albedo_from_parameters(surface_parameters(texture_seed, surface_id), s_m, t_m)

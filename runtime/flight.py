@@ -1,0 +1,401 @@
+"""The flight loop: asyncio tasks joined by latest-value slots (DESIGN §3).
+
+- camera task: the source's frames -> the latest-frame slot (+ the flight log);
+- policy task: on each new frame, preprocess (runtime.contract.images), observation state, ONNX
+  step with the GRU hidden state, clip, action -> velocity (ActionLimits), send through the
+  command gate; deadline = the control period (missed deadlines counted; the watchdog trips
+  past ``step_trip_ms``); goal reached (within GOAL_REACHED_RADIUS_M) ends the episode;
+- watchdog task: the time-based trips and the hover -> Hold response;
+- state task: vehicle telemetry into the flight log at 10 Hz.
+
+:class:`FlightLoop` knows nothing about how offboard was entered: the SITL entry point arms, takes
+off and starts offboard itself; a field entry point waits for the pilot to switch to offboard.
+Either then calls :meth:`FlightLoop.fly`, which resets the GRU state (offboard (re)entered) and
+flies until the goal, the time limit, a watchdog trip or the pilot taking over.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from .camera import CameraSource, Frame
+from .command_gate import Commander, CommandGate
+from .config import RuntimeConfig
+from .contract import (
+    CONTROL_PERIOD_S,
+    HOVER,
+    ImageContractError,
+    action_to_velocity_flu,
+    clip_action,
+    invalid_depth_fraction,
+    mavsdk_to_velocity_flu,
+    observation_state,
+    preprocess_depth,
+    preprocess_gray,
+    velocity_flu_to_mavsdk,
+)
+from .contract.constants import ACTION_DIM, GOAL_REACHED_RADIUS_M
+from .model import PolicyModel
+from .recorder import Recorder
+from .slots import LatestSlot
+from .timing import StageTimes
+from .vehicle import VehicleError, VehicleState
+from .watchdog import TripCause, WatchInputs, Watchdog
+
+log = logging.getLogger(__name__)
+
+_NS_PER_MS = 1_000_000
+_NS_PER_S = 1_000_000_000
+STATE_LOG_PERIOD_S = 0.1
+
+
+class VehicleLink(Commander, Protocol):
+    """What the loop needs from the vehicle (``runtime.vehicle.Vehicle`` implements it)."""
+
+    def state(self) -> VehicleState: ...
+
+
+@dataclass
+class EpisodeResult:
+    """How one offboard episode ended.  Times in seconds from :meth:`FlightLoop.fly`'s start."""
+
+    outcome: str  # "success" | "timeout" | "aborted"
+    abort_reason: str | None
+    time_s: float  # to the goal (success) or to the end
+    frames: int  # policy steps run
+    frames_received: int  # by the camera task since FlightLoop.start
+    missed_deadlines: int
+    bad_frames: int
+    step_ms: dict
+    stage_ms: dict
+    watchdog_trips: list[dict] = field(default_factory=list)
+    final_distance_m: float = float("nan")
+
+
+class FlightLoop:
+    """Camera, policy, watchdog and logging tasks around one model, vehicle and camera."""
+
+    def __init__(
+        self,
+        config: RuntimeConfig,
+        model: PolicyModel,
+        vehicle: VehicleLink,
+        camera: CameraSource,
+        recorder: Recorder | None = None,
+    ) -> None:
+        self.config = config
+        self.model = model
+        self.vehicle = vehicle
+        self.camera = camera
+        self.recorder = recorder
+        self.gate = CommandGate(vehicle)
+        self.watchdog = Watchdog(config.watchdog, self.gate, on_event=self._on_watchdog_event)
+        self.frames: LatestSlot[Frame] = LatestSlot("frames")
+        self.frames_received = 0
+        self._goal_enu_m = np.zeros(3)
+        self._hidden = model.initial_hidden()
+        self._prev_action = np.zeros(ACTION_DIM, dtype=np.float32)
+        self._step_started_ns = 0
+        self._background: list[asyncio.Task] = []
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="policy_step")
+
+    # ------------------------------------------------------------------ lifecycle
+
+    async def start(self) -> None:
+        """Start the camera and the state-logging tasks (they run until :meth:`close`)."""
+        await self.camera.start()
+        self._background = [asyncio.create_task(self._camera_task(), name="camera")]
+        if self.recorder is not None:
+            self._background.append(asyncio.create_task(self._state_log_task(self.recorder), name="state_log"))
+        for task in self._background:
+            task.add_done_callback(log_task_failure)
+
+    async def close(self) -> None:
+        for task in self._background:
+            task.cancel()
+        await asyncio.gather(*self._background, return_exceptions=True)
+        self._background.clear()
+        await self.camera.close()
+        # A hung inference thread must not hang shutdown too.
+        self._executor.shutdown(wait=False, cancel_futures=True)
+
+    async def safe_stop(self) -> None:
+        """Leave offboard safely when the program must stop mid-flight: hover, then Hold at once.
+
+        Does nothing if the pilot took over.  Used on shutdown (e.g. SIGTERM), outside :meth:`fly`.
+        """
+        self.watchdog.stop()
+        try:
+            await self.gate.hover()
+            await self.gate.hold()
+        except VehicleError as err:
+            log.error("safe stop failed (%s): MAVSDK stops re-sending on close, PX4's offboard-loss failsafe follows", err)
+
+    def set_goal(self, goal_enu_m: np.ndarray) -> None:
+        """New goal (local ENU, m): the GRU state resets."""
+        self._goal_enu_m = np.asarray(goal_enu_m, dtype=np.float64).copy()
+        self.reset_hidden()
+
+    def reset_hidden(self) -> None:
+        """Zero the GRU state and the previous action (offboard (re)entered, or a new goal)."""
+        self._hidden = self.model.initial_hidden()
+        self._prev_action = np.zeros(ACTION_DIM, dtype=np.float32)
+
+    async def wait_first_frame(self, timeout_s: float) -> Frame:
+        """The first camera frame; ``asyncio.TimeoutError`` if none comes in time."""
+        return (await self.frames.wait_newer(0, timeout_s)).value
+
+    # ------------------------------------------------------------------ one episode
+
+    async def fly(self, goal_enu_m: np.ndarray, timeout_s: float) -> EpisodeResult:
+        """Fly the policy from now (offboard active) to ``goal_enu_m`` (local ENU, m)."""
+        self.set_goal(goal_enu_m)
+        episode = _Episode(t0_ns=time.monotonic_ns(), timeout_s=timeout_s)
+        self.watchdog.start(episode.t0_ns, self.vehicle.state())
+        self._on_watchdog_event({"event": "start", "detail": repr(self.config.watchdog), "t_s": 0.0})
+        log.info("episode start: goal %s (local ENU m), time limit %.1f s", np.round(self._goal_enu_m, 2), timeout_s)
+        policy = asyncio.create_task(self._policy_task(episode), name="policy")
+        watchdog = asyncio.create_task(self._watchdog_task(), name="watchdog")
+        try:
+            await self._supervise(episode, policy, watchdog)
+        finally:
+            for task in (policy, watchdog):
+                task.cancel()
+            await asyncio.gather(policy, watchdog, return_exceptions=True)
+        return self._result(episode)
+
+    async def _supervise(self, episode: "_Episode", policy: asyncio.Task, watchdog: asyncio.Task) -> None:
+        timeout_at = episode.t0_ns + int(episode.timeout_s * _NS_PER_S)
+        pending: set[asyncio.Future] = {policy, watchdog, episode.ended}
+        while not episode.ended.done():
+            remaining_s = (timeout_at - time.monotonic_ns()) / _NS_PER_S
+            if remaining_s <= 0.0:
+                episode.finish("timeout", None, time.monotonic_ns())
+                break
+            done, pending = await asyncio.wait(pending, timeout=remaining_s, return_when=asyncio.FIRST_COMPLETED)
+            for task in done & {policy, watchdog}:
+                if task.exception() is not None:
+                    log.error("%s task failed", task.get_name(), exc_info=task.exception())
+                if task.exception() is not None and self.watchdog.tripped is None:
+                    now = time.monotonic_ns()
+                    await self.watchdog.trip(TripCause.POLICY_ERROR, f"{task.get_name()} task failed: {task.exception()!r}", now, now)
+            if self.watchdog.tripped is not None or self.watchdog.pilot_took_over:
+                episode.finish("aborted", self.watchdog.trips[0].cause.value, time.monotonic_ns())
+                await self._finish_trip_response(watchdog)
+                return
+            if watchdog in done:
+                # The watchdog task ended without a trip: only a bug does that; fly no further.
+                episode.finish("aborted", "watchdog task ended", time.monotonic_ns())
+                break
+        # Goal reached or out of time: hover, then Hold, as the watchdog would (but not a trip).
+        self.watchdog.stop()
+        try:
+            if await self.gate.hover():
+                self._log_hover("episode_end_hover")
+            await asyncio.sleep(self.config.watchdog.hold_grace_s)
+            await self.gate.hold()
+        except VehicleError as err:
+            log.error("hover/Hold at the end of the episode failed: %s", err)
+            episode.abort_reason = f"end of episode hover/Hold failed: {err}"
+
+    async def _finish_trip_response(self, watchdog: asyncio.Task) -> None:
+        """Let the watchdog finish its response (Hold after the grace period, or nothing if released)."""
+        limit_s = self.config.watchdog.hold_grace_s + 2.0 * self.config.vehicle.command_timeout_s + 1.0
+        if watchdog.done():
+            if watchdog.exception() is None:
+                return
+            # The watchdog task itself failed: command Hold here so the vehicle is not left hovering in offboard.
+            await asyncio.sleep(self.config.watchdog.hold_grace_s)
+            try:
+                await self.gate.hold()
+            except VehicleError as err:
+                log.error("Hold after the trip failed: %s; the vehicle hovers in offboard", err)
+            return
+        try:
+            await asyncio.wait_for(asyncio.shield(watchdog), limit_s)
+        except asyncio.TimeoutError:
+            log.error("the watchdog could not command Hold within %.1f s; the vehicle hovers in offboard", limit_s)
+
+    # ------------------------------------------------------------------ tasks
+
+    async def _camera_task(self) -> None:
+        async for frame in self.camera.frames():
+            self.frames.put(frame)
+            self.frames_received += 1
+            if self.recorder is not None:
+                self.recorder.log_frame(frame)
+
+    async def _state_log_task(self, recorder: Recorder) -> None:
+        while True:
+            recorder.log_state(time.monotonic_ns(), self.vehicle.state())
+            await asyncio.sleep(STATE_LOG_PERIOD_S)
+
+    async def _watchdog_task(self) -> None:
+        period_s = self.config.watchdog.period_s
+        while True:
+            latest = self.frames.latest()
+            await self.watchdog.tick(
+                WatchInputs(
+                    now_ns=time.monotonic_ns(),
+                    t_last_frame_capture_ns=latest.value.t_capture_ns if latest else 0,
+                    t_step_started_ns=self._step_started_ns,
+                    vehicle=self.vehicle.state(),
+                )
+            )
+            trip = self.watchdog.tripped
+            if self.watchdog.pilot_took_over or (trip is not None and trip.hold_t_ns is not None):
+                return
+            await asyncio.sleep(period_s)
+
+    async def _policy_task(self, episode: "_Episode") -> None:
+        seq = self.frames.latest().seq if self.frames.latest() else 0
+        while self.gate.policy_open:
+            try:
+                stamped = await self.frames.wait_newer(seq, timeout_s=CONTROL_PERIOD_S)
+            except asyncio.TimeoutError:
+                continue  # no frame: the watchdog's stale-frame check decides
+            seq = stamped.seq
+            if await self._step(stamped.value, episode):
+                episode.finish("success", None, time.monotonic_ns())
+                return
+
+    async def _step(self, frame: Frame, episode: "_Episode") -> bool:
+        """One control step on ``frame``; True when the goal is reached."""
+        t_start = time.monotonic_ns()
+        self._step_started_ns = t_start
+        try:
+            return await self._step_inner(frame, episode, t_start)
+        finally:
+            self._step_started_ns = 0
+
+    async def _step_inner(self, frame: Frame, episode: "_Episode", t_start: int) -> bool:
+        try:
+            gray = preprocess_gray(frame.gray_u8)
+            depth = preprocess_depth(frame.depth_m)
+        except ImageContractError as err:
+            episode.bad_frames += 1
+            log.error("frame %d skipped: %s", frame.seq, err)
+            return False
+        self.watchdog.note_depth(frame.t_capture_ns, invalid_depth_fraction(frame.depth_m))
+        t_pre = time.monotonic_ns()
+        state = self.vehicle.state()
+        obs_state = observation_state(state.pos_enu_m, self._goal_enu_m, state.quat_enu_flu, state.vel_body_flu_m_s,
+                                      state.angvel_body_flu_rad_s, self._prev_action)  # fmt: skip
+        t_obs = time.monotonic_ns()
+        limit_s = self.config.watchdog.step_trip_ms / 1000.0 - (t_obs - t_start) / _NS_PER_S
+        loop = asyncio.get_running_loop()
+        try:
+            out = await asyncio.wait_for(
+                loop.run_in_executor(self._executor, self.model.step, gray, depth, obs_state, self._hidden),
+                timeout=max(limit_s, 0.0),
+            )
+        except asyncio.TimeoutError:
+            now = time.monotonic_ns()
+            await self.watchdog.trip(
+                TripCause.STEP_DEADLINE,
+                f"inference did not finish within the step limit {self.config.watchdog.step_trip_ms:.0f} ms",
+                t_start + int(self.config.watchdog.step_trip_ms * _NS_PER_MS), now,
+            )  # fmt: skip
+            return False
+        t_inf = time.monotonic_ns()
+        clipped = clip_action(out.action).astype(np.float32)
+        if self.recorder is not None:
+            self.recorder.log_step(frame, np.concatenate([obs_state, out.latent]), out.action, clipped, out.latent)
+        if await self.watchdog.check_action(out.action, t_start, time.monotonic_ns()) is not None:
+            return False
+        cmd_flu = action_to_velocity_flu(clipped, self.config.policy.limits)
+        cmd = velocity_flu_to_mavsdk(cmd_flu)
+        try:
+            sent = await self.gate.send_policy(cmd)
+        except VehicleError as err:
+            now = time.monotonic_ns()
+            await self.watchdog.trip(TripCause.POLICY_ERROR, f"velocity command failed: {err}", now, now)
+            return False
+        t_cmd = time.monotonic_ns()
+        self._hidden = out.hidden_next
+        self._prev_action = clipped
+        stages_ms = {
+            "preprocess": (t_pre - t_start) / _NS_PER_MS,
+            "observation": (t_obs - t_pre) / _NS_PER_MS,
+            "inference": (t_inf - t_obs) / _NS_PER_MS,
+            "command": (t_cmd - t_inf) / _NS_PER_MS,
+            "step": (t_cmd - t_start) / _NS_PER_MS,
+            "frame_age": (t_cmd - frame.t_capture_ns) / _NS_PER_MS,
+        }
+        missed = stages_ms["step"] > CONTROL_PERIOD_S * 1000.0
+        episode.steps += 1
+        episode.missed_deadlines += int(missed)
+        episode.timing.add(stages_ms)
+        if self.recorder is not None:
+            self.recorder.log_command(t_cmd, frame, cmd_flu, cmd, "policy", sent)
+            self.recorder.log_timing(frame, stages_ms, missed)
+        episode.last_distance_m = float(np.linalg.norm(self._goal_enu_m - state.pos_enu_m))
+        return episode.last_distance_m < GOAL_REACHED_RADIUS_M
+
+    # ------------------------------------------------------------------ results and logging
+
+    def _on_watchdog_event(self, event: dict) -> None:
+        if self.recorder is not None:
+            now = time.monotonic_ns()
+            self.recorder.log_watchdog(now, event)
+            if event.get("event") == "trip" and event.get("response") == "hover_then_hold":
+                self._log_hover("watchdog_hover")
+
+    def _log_hover(self, source: str) -> None:
+        if self.recorder is not None:
+            self.recorder.log_command(time.monotonic_ns(), None, mavsdk_to_velocity_flu(HOVER), HOVER, source, True)
+
+    def _result(self, episode: "_Episode") -> EpisodeResult:
+        state = self.vehicle.state()
+        final_distance_m = float(np.linalg.norm(self._goal_enu_m - state.pos_enu_m))
+        stage_ms = episode.timing.summary()
+        return EpisodeResult(
+            outcome=episode.outcome or "aborted",
+            abort_reason=episode.abort_reason,
+            time_s=round(((episode.t_end_ns or time.monotonic_ns()) - episode.t0_ns) / _NS_PER_S, 3),
+            frames=episode.steps,
+            frames_received=self.frames_received,
+            missed_deadlines=episode.missed_deadlines,
+            bad_frames=episode.bad_frames,
+            step_ms=stage_ms.get("step", {"p50": None, "p99": None, "max": None, "n": 0}),
+            stage_ms=stage_ms,
+            watchdog_trips=self.watchdog.records(),
+            final_distance_m=round(final_distance_m, 3),
+        )
+
+
+def log_task_failure(task: asyncio.Task) -> None:
+    """Done-callback: log a background task that ended on an exception (its consequence, e.g.
+    stale frames or telemetry, is the watchdog's to handle)."""
+    if not task.cancelled() and task.exception() is not None:
+        log.error("task %s failed", task.get_name(), exc_info=task.exception())
+
+
+@dataclass
+class _Episode:
+    """Book-keeping of one :meth:`FlightLoop.fly`."""
+
+    t0_ns: int
+    timeout_s: float
+    steps: int = 0
+    missed_deadlines: int = 0
+    bad_frames: int = 0
+    last_distance_m: float = float("nan")
+    outcome: str | None = None
+    abort_reason: str | None = None
+    t_end_ns: int | None = None
+    timing: StageTimes = field(default_factory=StageTimes)
+    ended: asyncio.Future = field(default_factory=lambda: asyncio.get_running_loop().create_future())
+
+    def finish(self, outcome: str, reason: str | None, t_ns: int) -> None:
+        if self.outcome is None:
+            self.outcome, self.abort_reason, self.t_end_ns = outcome, reason, t_ns
+            if not self.ended.done():
+                self.ended.set_result(outcome)

@@ -1,0 +1,178 @@
+"""The policy's ONNX Runtime session: load, check against the contract, step.
+
+One graph per control step, batch 1 (DESIGN §6): inputs ``gray`` and ``depth``
+[1, 1, 224, 224] float32, ``state`` [1, 15] float32, ``hidden`` [1, H] float32 (the GRU state);
+outputs ``action`` [1, 3], ``hidden_next`` [1, H], ``latent`` [1, 64], all float32.  A model
+whose signature or contract metadata differs is refused with an error naming every difference,
+before anything is armed.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import onnxruntime as ort
+from onnxruntime.capi import onnxruntime_pybind11_state as _ort_state
+
+from .contract import check_contract_metadata
+from .contract import constants as c
+
+log = logging.getLogger(__name__)
+
+_FLOAT = "tensor(float)"
+# name -> expected shape; None = the GRU hidden size H (read from the model), "batch" = 1 or symbolic.
+_IMAGE_SHAPE = ("batch", 1, c.IMAGE_SIZE_PX, c.IMAGE_SIZE_PX)
+_INPUTS: dict[str, tuple] = {
+    c.ONNX_INPUT_GRAY: _IMAGE_SHAPE,
+    c.ONNX_INPUT_DEPTH: _IMAGE_SHAPE,
+    c.ONNX_INPUT_STATE: ("batch", c.STATE_DIM),
+    c.ONNX_INPUT_HIDDEN: ("batch", None),
+}
+_OUTPUTS: dict[str, tuple] = {
+    c.ONNX_OUTPUT_ACTION: ("batch", c.ACTION_DIM),
+    c.ONNX_OUTPUT_HIDDEN: ("batch", None),
+    c.ONNX_OUTPUT_LATENT: ("batch", c.LATENT_DIM),
+}
+_IMAGE_BATCH = (1, 1, c.IMAGE_SIZE_PX, c.IMAGE_SIZE_PX)
+_LOAD_ERRORS = (
+    _ort_state.Fail,
+    _ort_state.InvalidGraph,
+    _ort_state.InvalidProtobuf,
+    _ort_state.InvalidArgument,
+    _ort_state.NotImplemented,
+)
+_FIX = "export the model with `cmnav export` from this cmnav version"
+
+
+class ModelLoadError(ValueError):
+    """The model file is missing, unreadable, or its signature differs from the contract's."""
+
+
+class ProviderUnavailableError(ModelLoadError):
+    """A configured execution provider is not in this ONNX Runtime build."""
+
+
+@dataclass(frozen=True)
+class StepOutput:
+    """One policy step: raw action (3,), next GRU state (H,), CMWAE latent (64,), all float32."""
+
+    action: np.ndarray
+    hidden_next: np.ndarray
+    latent: np.ndarray
+
+
+class PolicyModel:
+    """An ONNX Runtime session for the policy step, checked against the contract at load."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        providers: Sequence[str] = ("CPUExecutionProvider",),
+        intra_op_threads: int = 0,
+    ) -> None:
+        """Load ``path`` on ``providers`` (in order of preference); raise :class:`ModelLoadError`
+        or :class:`runtime.contract.ContractMismatchError` if it is not a model for this runtime."""
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise ModelLoadError(f"model file {self.path} does not exist: check the path in the config")
+        available = ort.get_available_providers()
+        missing = [p for p in providers if p not in available]
+        if missing:
+            raise ProviderUnavailableError(
+                f"execution provider(s) {missing} not in this ONNX Runtime build (available: {available}): "
+                "install the onnxruntime build that has them, or remove them from policy.providers"
+            )
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = intra_op_threads
+        options.log_severity_level = 3
+        try:
+            self._session = ort.InferenceSession(str(self.path), sess_options=options, providers=list(providers))
+        except _LOAD_ERRORS as err:
+            raise ModelLoadError(f"{self.path} is not a loadable ONNX model ({err}): {_FIX}") from err
+        check_contract_metadata(self._session.get_modelmeta().custom_metadata_map, source=str(self.path))
+        self.hidden_size = self._check_signature()
+        self.providers = tuple(self._session.get_providers())
+        self._output_names = [c.ONNX_OUTPUT_ACTION, c.ONNX_OUTPUT_HIDDEN, c.ONNX_OUTPUT_LATENT]
+        log.info("loaded %s: hidden size %d, providers %s", self.path, self.hidden_size, self.providers)
+
+    def _check_signature(self) -> int:
+        """Compare names, shapes and dtypes with the contract; return the GRU hidden size H."""
+        problems: list[str] = []
+        hidden_sizes: dict[str, object] = {}
+        for kind, expected, actual in (
+            ("input", _INPUTS, self._session.get_inputs()),
+            ("output", _OUTPUTS, self._session.get_outputs()),
+        ):
+            by_name = {a.name: a for a in actual}
+            for name in sorted(set(by_name) - set(expected)):
+                problems.append(f"unexpected {kind} {name!r}")
+            for name, shape in expected.items():
+                if name not in by_name:
+                    problems.append(f"missing {kind} {name!r} (has {sorted(by_name)})")
+                    continue
+                arg = by_name[name]
+                if arg.type != _FLOAT:
+                    problems.append(f"{kind} {name!r} has type {arg.type}, expected {_FLOAT}")
+                problems.extend(_shape_problems(kind, name, list(arg.shape), shape, hidden_sizes))
+        sizes = set(hidden_sizes.values())
+        if len(sizes) > 1:
+            problems.append(f"GRU hidden sizes differ: {hidden_sizes}")
+        if problems:
+            raise ModelLoadError(f"{self.path} does not have the contract's step signature: " + "; ".join(problems) + f"; {_FIX}")
+        (hidden_size,) = sizes
+        assert isinstance(hidden_size, int)
+        return hidden_size
+
+    def initial_hidden(self) -> np.ndarray:
+        """The GRU state at reset: zeros (H,), float32."""
+        return np.zeros(self.hidden_size, dtype=np.float32)
+
+    def step(self, gray: np.ndarray, depth: np.ndarray, state: np.ndarray, hidden: np.ndarray) -> StepOutput:
+        """One policy step.
+
+        ``gray``, ``depth``: (224, 224) float32 from ``runtime.contract.images``; ``state``: (15,)
+        float32 from ``observation_state``; ``hidden``: (H,) float32.  Returns the raw action
+        (not yet clipped), the next hidden state and the latent.
+        """
+        feeds = {
+            c.ONNX_INPUT_GRAY: _as_input(gray, (c.IMAGE_SIZE_PX, c.IMAGE_SIZE_PX), "gray").reshape(_IMAGE_BATCH),
+            c.ONNX_INPUT_DEPTH: _as_input(depth, (c.IMAGE_SIZE_PX, c.IMAGE_SIZE_PX), "depth").reshape(_IMAGE_BATCH),
+            c.ONNX_INPUT_STATE: _as_input(state, (c.STATE_DIM,), "state").reshape(1, c.STATE_DIM),
+            c.ONNX_INPUT_HIDDEN: _as_input(hidden, (self.hidden_size,), "hidden").reshape(1, self.hidden_size),
+        }
+        action, hidden_next, latent = self._session.run(self._output_names, feeds)
+        return StepOutput(action=action[0], hidden_next=hidden_next[0], latent=latent[0])
+
+
+
+def _as_input(array: np.ndarray, shape: tuple[int, ...], name: str) -> np.ndarray:
+    array = np.asarray(array)
+    if array.shape != shape:
+        raise ValueError(f"policy step input {name!r} has shape {array.shape}, expected {shape}")
+    return np.ascontiguousarray(array, dtype=np.float32)
+
+
+def _shape_problems(kind: str, name: str, actual: list, expected: tuple, hidden_sizes: dict[str, object]) -> list[str]:
+    if len(actual) != len(expected):
+        return [f"{kind} {name!r} has shape {actual}, expected rank {len(expected)} {_describe(expected)}"]
+    problems = []
+    for axis, (got, want) in enumerate(zip(actual, expected)):
+        if want == "batch":
+            if isinstance(got, int) and got != 1:
+                problems.append(f"{kind} {name!r} has batch size {got}, expected 1")
+        elif want is None:
+            hidden_sizes[f"{kind} {name}"] = got
+            if not (isinstance(got, int) and got > 0):
+                problems.append(f"{kind} {name!r} has hidden size {got!r} on axis {axis}, expected a fixed integer")
+        elif got != want:
+            problems.append(f"{kind} {name!r} has shape {actual}, expected {_describe(expected)}")
+            break
+    return problems
+
+
+def _describe(shape: tuple) -> str:
+    return "[" + ", ".join("1" if d == "batch" else "H" if d is None else str(d) for d in shape) + "]"

@@ -1,0 +1,311 @@
+"""The MCAP flight log, written with the Foxglove SDK (open it in Foxglove).
+
+Channels (topic: schema):
+- ``/camera/depth``: ``foxglove.RawImage`` 32FC1, the raw camera depth in metres (0/NaN = invalid)
+- ``/camera/gray``: ``foxglove.RawImage`` mono8
+- ``/vehicle/state``: ``cmnav.VehicleState`` (local ENU world, FLU body, receive times)
+- ``/policy/observation``: ``cmnav.Observation`` (15 state values + 64 latent = 79)
+- ``/policy/action``: ``cmnav.Action`` (raw and clipped, in [-1, 1])
+- ``/vehicle/command``: ``cmnav.VelocityCommand`` (body FLU and MAVSDK FRD forms)
+- ``/policy/latent``: ``cmnav.Latent`` (64)
+- ``/timing``: ``cmnav.StepTiming`` (per-stage milliseconds of each step)
+- ``/watchdog``: ``cmnav.WatchdogEvent`` (supervision start with thresholds, trips, Hold)
+
+Log times: the runtime's clock is CLOCK_MONOTONIC; MCAP log times are Unix-epoch nanoseconds, so
+each monotonic time is shifted by one offset taken when the log opens (kept in the file's
+``cmnav`` metadata record as ``monotonic_to_unix_offset_ns``).  Messages also carry their
+monotonic times in their fields.
+
+The flight loop must never wait on the disk: every ``log_*`` call only puts a record into a
+bounded queue (dropped and counted when full) and a writer thread encodes, compresses (zstd) and
+writes.  The writer flushes (closes the chunk) at least every ``flush_period_s``, so a killed
+process loses about that much.  A log cut short by a kill has no summary section: read it with a
+streaming reader (``mcap.reader.NonSeekingReader``, ``iter_messages(log_time_order=False)``), which
+yields every message of every finished chunk, then raises ``mcap.exceptions.EndOfFile`` at the cut
+(or ``RecordLengthLimitExceeded`` at the unfinished chunk, whose length is still a placeholder).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import foxglove
+import numpy as np
+from foxglove.channels import RawImageChannel
+from foxglove.mcap import MCAPCompression, MCAPWriteOptions
+from foxglove.messages import RawImage, Timestamp
+
+from .camera.frame import Frame
+from .config import RecorderConfig
+from .contract import CONTRACT_VERSION, VelocityBodyYawspeed
+from .vehicle import VehicleState
+
+log = logging.getLogger(__name__)
+
+TOPIC_DEPTH = "/camera/depth"
+TOPIC_GRAY = "/camera/gray"
+TOPIC_STATE = "/vehicle/state"
+TOPIC_OBSERVATION = "/policy/observation"
+TOPIC_ACTION = "/policy/action"
+TOPIC_COMMAND = "/vehicle/command"
+TOPIC_LATENT = "/policy/latent"
+TOPIC_TIMING = "/timing"
+TOPIC_WATCHDOG = "/watchdog"
+CAMERA_FRAME_ID = "camera"
+
+_NUM_ARRAY = {"type": "array", "items": {"type": ["number", "null"]}}
+_INT = {"type": "integer"}
+_SCHEMAS: dict[str, tuple[str, str, dict[str, Any]]] = {
+    TOPIC_STATE: ("cmnav.VehicleState", "Vehicle telemetry: local ENU world, FLU body; t_*_ns = receive times (CLOCK_MONOTONIC)", {
+        "t_ns": _INT, "pos_enu_m": _NUM_ARRAY, "vel_enu_m_s": _NUM_ARRAY, "vel_body_flu_m_s": _NUM_ARRAY,
+        "quat_enu_flu": _NUM_ARRAY, "angvel_body_flu_rad_s": _NUM_ARRAY, "yaw_enu_rad": {"type": ["number", "null"]},
+        "height_above_home_m": {"type": ["number", "null"]}, "flight_mode": {"type": "string"},
+        "armed": {"type": "boolean"}, "in_air": {"type": "boolean"}, "landed_state": {"type": "string"},
+        "t_posvel_ns": _INT, "t_att_ns": _INT, "t_mode_ns": _INT}),
+    TOPIC_OBSERVATION: ("cmnav.Observation", "Policy observation: [0:15] state (runtime.contract.observation), [15:79] latent", {
+        "t_capture_ns": _INT, "frame_seq": _INT, "observation": _NUM_ARRAY}),
+    TOPIC_ACTION: ("cmnav.Action", "Policy action: raw ONNX output and clipped to [-1, 1] (null = NaN/Inf)", {
+        "t_capture_ns": _INT, "frame_seq": _INT, "raw": _NUM_ARRAY, "clipped": _NUM_ARRAY}),
+    TOPIC_COMMAND: ("cmnav.VelocityCommand", "Velocity command: body FLU (m/s, rad/s) and MAVSDK FRD form (m/s, deg/s)", {
+        "t_capture_ns": _INT, "frame_seq": _INT, "source": {"type": "string"}, "sent": {"type": "boolean"},
+        "vel_body_flu_m_s": _NUM_ARRAY, "yaw_rate_flu_rad_s": {"type": "number"}, "forward_m_s": {"type": "number"},
+        "right_m_s": {"type": "number"}, "down_m_s": {"type": "number"}, "yawspeed_deg_s": {"type": "number"}}),
+    TOPIC_LATENT: ("cmnav.Latent", "CMWAE latent z (64)", {
+        "t_capture_ns": _INT, "frame_seq": _INT, "latent": _NUM_ARRAY}),
+    TOPIC_TIMING: ("cmnav.StepTiming", "Per-stage time of one policy step (ms); step_ms = frame taken -> command sent", {
+        "t_capture_ns": _INT, "frame_seq": _INT, "missed_deadline": {"type": "boolean"},
+        "stages_ms": {"type": "object", "additionalProperties": {"type": "number"}}}),
+    TOPIC_WATCHDOG: ("cmnav.WatchdogEvent", "Watchdog: supervision start (thresholds), trips and Hold", {
+        "event": {"type": "string"}, "cause": {"type": ["string", "null"]}, "detail": {"type": ["string", "null"]},
+        "t_s": {"type": ["number", "null"]}, "detect_ms": {"type": ["number", "null"]},
+        "response": {"type": ["string", "null"]}, "hold_t_s": {"type": ["number", "null"]}}),
+}  # fmt: skip
+
+
+class RecorderError(RuntimeError):
+    """The flight log could not be opened or written."""
+
+
+@dataclass
+class RecorderStats:
+    written: int = 0
+    dropped: int = 0
+    flushes: int = 0
+
+
+_STOP = object()
+
+
+class Recorder:
+    """Writes the flight log from a background thread; ``log_*`` never blocks the caller."""
+
+    def __init__(self, path: str | Path, config: RecorderConfig = RecorderConfig(), metadata: dict[str, str] | None = None) -> None:
+        """Create ``path`` (must not exist; parent directories are created)."""
+        self.path = Path(path)
+        self.config = config
+        self.stats = RecorderStats()
+        self._offset_ns = time.time_ns() - time.monotonic_ns()
+        self._queue: queue.Queue = queue.Queue(maxsize=config.queue_size)
+        self._context = foxglove.Context()
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._writer = foxglove.open_mcap(
+                self.path,
+                context=self._context,
+                writer_options=MCAPWriteOptions(compression=MCAPCompression.Zstd, compression_threads=0),
+            )
+        except (OSError, RuntimeError) as err:
+            raise RecorderError(f"cannot create flight log {self.path} ({err}): check the log directory exists and is writable") from err
+        self._writer.write_metadata(
+            "cmnav",
+            {"contract_version": CONTRACT_VERSION, "monotonic_to_unix_offset_ns": str(self._offset_ns), **(metadata or {})},
+        )
+        self._images = {
+            TOPIC_DEPTH: RawImageChannel(TOPIC_DEPTH, context=self._context),
+            TOPIC_GRAY: RawImageChannel(TOPIC_GRAY, context=self._context),
+        }
+        self._json = {
+            topic: foxglove.Channel(
+                topic,
+                schema=foxglove.Schema(
+                    name=name,
+                    encoding="jsonschema",
+                    data=json.dumps({"title": name, "description": doc, "type": "object", "properties": props}).encode(),
+                ),
+                message_encoding="json",
+                context=self._context,
+            )
+            for topic, (name, doc, props) in _SCHEMAS.items()
+        }
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name="mcap_recorder", daemon=True)
+        self._thread.start()
+        log.info("recording flight log to %s", self.path)
+
+    # ------------------------------------------------------------------ what the loop logs
+
+    def log_frame(self, frame: Frame) -> None:
+        """The raw camera frame: depth (metres) and gray, stamped with its capture time."""
+        self._put(("frame", frame.t_capture_ns, frame))
+
+    def log_state(self, t_ns: int, state: VehicleState) -> None:
+        self._put(("state", t_ns, state))
+
+    def log_step(
+        self,
+        frame: Frame,
+        observation: np.ndarray,
+        action_raw: np.ndarray,
+        action_clipped: np.ndarray,
+        latent: np.ndarray,
+    ) -> None:
+        """One policy step's observation (79), actions (3) and latent (64), stamped with the frame."""
+        self._put(("step", frame.t_capture_ns, (frame.seq, observation, action_raw, action_clipped, latent)))
+
+    def log_command(
+        self, t_ns: int, frame: Frame | None, cmd_flu: np.ndarray, cmd: VelocityBodyYawspeed, source: str, sent: bool
+    ) -> None:
+        """A velocity command: ``cmd_flu`` (vx, vy, vz m/s, wz rad/s) and its MAVSDK form."""
+        self._put(("command", t_ns, (frame, cmd_flu, cmd, source, sent)))
+
+    def log_timing(self, frame: Frame, stages_ms: dict[str, float], missed_deadline: bool) -> None:
+        self._put(("timing", frame.t_capture_ns, (frame.seq, dict(stages_ms), missed_deadline)))
+
+    def log_watchdog(self, t_ns: int, event: dict) -> None:
+        self._put(("watchdog", t_ns, dict(event)))
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Write what is queued, then close the file (its summary makes it seekable)."""
+        if self._closed:
+            return
+        if self._thread.is_alive():
+            try:
+                self._queue.put(_STOP, timeout=timeout_s)
+            except queue.Full:
+                log.error("flight log writer is stuck; closing %s without the queued records", self.path)
+            self._thread.join(timeout_s)
+        if self._thread.is_alive():
+            log.error("flight log writer did not finish within %.1f s; %s may lack its summary", timeout_s, self.path)
+            return
+        self._closed = True
+        self._writer.close()
+        log.info("flight log %s closed: %d records written, %d dropped", self.path, self.stats.written, self.stats.dropped)
+
+    # ------------------------------------------------------------------ writer thread
+
+    def _put(self, item: tuple) -> None:
+        try:
+            self._queue.put_nowait(item)
+        except queue.Full:
+            self.stats.dropped += 1
+            if self.stats.dropped in (1, 10, 100) or self.stats.dropped % 1000 == 0:
+                log.warning("flight log writer is behind: %d records dropped so far", self.stats.dropped)
+
+    def _run(self) -> None:
+        try:
+            self._write_until_stopped()
+        except BaseException:
+            log.exception("flight log writer stopped on an error; further records are dropped")
+            raise
+
+    def _write_until_stopped(self) -> None:
+        next_flush = time.monotonic() + self.config.flush_period_s
+        while True:
+            try:
+                item = self._queue.get(timeout=max(0.0, next_flush - time.monotonic()))
+            except queue.Empty:
+                item = None
+            if item is _STOP:
+                return
+            if item is not None:
+                self._write(*item)
+                self.stats.written += 1
+            if time.monotonic() >= next_flush:
+                self._writer.flush()
+                self.stats.flushes += 1
+                next_flush = time.monotonic() + self.config.flush_period_s
+
+    def _write(self, kind: str, t_ns: int, payload: Any) -> None:
+        log_time = t_ns + self._offset_ns
+        if kind == "frame":
+            self._write_frame(payload, log_time)
+        elif kind == "state":
+            self._log_json(TOPIC_STATE, log_time, _state_message(t_ns, payload))
+        elif kind == "step":
+            seq, observation, raw, clipped, latent = payload
+            head = {"t_capture_ns": t_ns, "frame_seq": seq}
+            self._log_json(TOPIC_OBSERVATION, log_time, {**head, "observation": _floats(observation)})
+            self._log_json(TOPIC_ACTION, log_time, {**head, "raw": _floats(raw), "clipped": _floats(clipped)})
+            self._log_json(TOPIC_LATENT, log_time, {**head, "latent": _floats(latent)})
+        elif kind == "command":
+            frame, cmd_flu, cmd, source, sent = payload
+            self._log_json(TOPIC_COMMAND, log_time, {
+                "t_capture_ns": frame.t_capture_ns if frame else 0, "frame_seq": frame.seq if frame else 0,
+                "source": source, "sent": sent, "vel_body_flu_m_s": _floats(cmd_flu[:3]),
+                "yaw_rate_flu_rad_s": float(cmd_flu[3]), "forward_m_s": cmd.forward_m_s, "right_m_s": cmd.right_m_s,
+                "down_m_s": cmd.down_m_s, "yawspeed_deg_s": cmd.yawspeed_deg_s,
+            })  # fmt: skip
+        elif kind == "timing":
+            seq, stages, missed = payload
+            self._log_json(TOPIC_TIMING, log_time, {"t_capture_ns": t_ns, "frame_seq": seq, "missed_deadline": missed,
+                                                    "stages_ms": {k: round(v, 4) for k, v in stages.items()}})  # fmt: skip
+        elif kind == "watchdog":
+            self._log_json(TOPIC_WATCHDOG, log_time, payload)
+        else:
+            raise AssertionError(f"unknown record kind {kind!r}")
+
+    def _write_frame(self, frame: Frame, log_time: int) -> None:
+        stamp = Timestamp(sec=log_time // 1_000_000_000, nsec=log_time % 1_000_000_000)
+        depth = np.ascontiguousarray(frame.depth_m, dtype="<f4")
+        gray = np.ascontiguousarray(frame.gray_u8, dtype=np.uint8)
+        height, width = depth.shape
+        self._images[TOPIC_DEPTH].log(
+            RawImage(timestamp=stamp, frame_id=CAMERA_FRAME_ID, width=width, height=height, encoding="32FC1",
+                     step=4 * width, data=depth.tobytes()),
+            log_time=log_time,
+        )  # fmt: skip
+        self._images[TOPIC_GRAY].log(
+            RawImage(timestamp=stamp, frame_id=CAMERA_FRAME_ID, width=width, height=height, encoding="mono8",
+                     step=width, data=gray.tobytes()),
+            log_time=log_time,
+        )  # fmt: skip
+
+    def _log_json(self, topic: str, log_time: int, message: dict) -> None:
+        self._json[topic].log(json.dumps(message, allow_nan=False).encode(), log_time=log_time)
+
+
+def _floats(values: Any) -> list[float | None]:
+    """JSON numbers; NaN/Inf become null (JSON has no NaN)."""
+    return [float(v) if math.isfinite(v) else None for v in np.asarray(values, dtype=np.float64).ravel()]
+
+
+def _number(value: float) -> float | None:
+    return float(value) if math.isfinite(value) else None
+
+
+def _state_message(t_ns: int, s: VehicleState) -> dict:
+    return {
+        "t_ns": t_ns,
+        "pos_enu_m": _floats(s.pos_enu_m),
+        "vel_enu_m_s": _floats(s.vel_enu_m_s),
+        "vel_body_flu_m_s": _floats(s.vel_body_flu_m_s),
+        "quat_enu_flu": _floats(s.quat_enu_flu),
+        "angvel_body_flu_rad_s": _floats(s.angvel_body_flu_rad_s),
+        "yaw_enu_rad": _number(s.yaw_enu_rad),
+        "height_above_home_m": _number(s.height_above_home_m),
+        "flight_mode": s.flight_mode,
+        "armed": s.armed,
+        "in_air": s.in_air,
+        "landed_state": s.landed_state,
+        "t_posvel_ns": s.t_posvel_ns,
+        "t_att_ns": s.t_att_ns,
+        "t_mode_ns": s.t_mode_ns,
+    }

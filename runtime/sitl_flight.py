@@ -1,0 +1,218 @@
+"""``python -m runtime.sitl_flight``: fly one SITL episode with the runtime (the SITL dry run).
+
+Connects to the SITL vehicle (MAVSDK ``udpin://127.0.0.1:PORT``) and its camera link (TCP
+127.0.0.1), waits for health (armable, local position, home) and a first frame, arms, takes off
+to ``--takeoff-alt-m`` and waits for Hold there, sets a hover setpoint, starts offboard, flies
+the policy (:class:`runtime.flight.FlightLoop`) until within GOAL_REACHED_RADIUS_M of the goal,
+the time limit or an abort, hovers, Holds, lands, waits for disarm and writes the summary JSON.
+
+Unlike the field program this one arms and takes off by itself: that is what a SITL dry run is.
+
+Exit codes: 0 success; 1 timeout or aborted in flight; 2 the episode could not be run (model
+refused, no autopilot, not healthy, takeoff failed, ...).  The summary is written in every case
+it can be: ``{outcome: success|timeout|aborted, abort_reason, time_s, frames, missed_deadlines,
+step_ms {p50, p99}, stage_ms {stage: {p50, p99}}, watchdog_trips [...], log,
+t_launch_to_offboard_s, goal_rel_home_enu_m, final_distance_m, ...}``; ``time_s`` runs from
+offboard start to the goal, ``t_launch_to_offboard_s`` from this process's start to offboard confirmed by telemetry.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .camera.sim_source import SimCameraSource
+from .config import PolicyConfig, RecorderConfig, RuntimeConfig, VehicleConfig
+from .contract import HOVER, ContractMismatchError
+from .flight import EpisodeResult, FlightLoop
+from .model import ModelLoadError, PolicyModel
+from .recorder import Recorder, RecorderError
+from .vehicle import MODE_OFFBOARD, Vehicle, VehicleError
+
+log = logging.getLogger("runtime.sitl_flight")
+
+T_IMPORT_NS = time.monotonic_ns()
+FIRST_FRAME_TIMEOUT_S = 10.0
+LOG_NAME = "flight.mcap"
+
+
+def process_age_s() -> float:
+    """Seconds since this process started (Linux /proc; elsewhere since this module's import)."""
+    try:
+        start_ticks = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
+    except (OSError, IndexError, ValueError):
+        return (time.monotonic_ns() - T_IMPORT_NS) / 1e9
+    return time.clock_gettime(time.CLOCK_BOOTTIME) - start_ticks / os.sysconf("SC_CLK_TCK")
+
+
+class FlightError(RuntimeError):
+    """The episode could not be run (or landed); the message says why."""
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="python -m runtime.sitl_flight", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--mavlink-port", type=int, required=True, help="UDP port MAVSDK listens on (127.0.0.1)")
+    parser.add_argument("--camera-port", type=int, required=True, help="the SITL vehicle's camera TCP port (127.0.0.1)")
+    parser.add_argument("--model", type=Path, required=True, help="ONNX model with the runtime's contract")
+    parser.add_argument("--goal-rel-home", required=True, help="goal relative to home, ENU metres: x,y,z")
+    parser.add_argument("--takeoff-alt-m", type=float, required=True, help="takeoff height above home (m)")
+    parser.add_argument("--timeout-s", type=float, default=60.0, help="offboard flight time limit (s, default 60)")
+    parser.add_argument("--log-dir", type=Path, required=True, help=f"directory for the MCAP log ({LOG_NAME})")
+    parser.add_argument("--summary", type=Path, required=True, help="where to write the summary JSON")
+    parser.add_argument("--providers", default="CPUExecutionProvider", help="ONNX Runtime execution providers, comma-separated")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    args = parser.parse_args(argv)
+    try:
+        goal = [float(v) for v in args.goal_rel_home.split(",")]
+    except ValueError:
+        goal = []
+    if len(goal) != 3 or not np.all(np.isfinite(goal)):
+        parser.error(f"--goal-rel-home {args.goal_rel_home!r}: expected three numbers x,y,z (ENU metres from home)")
+    args.goal_rel_home = np.array(goal)
+    if not (0.0 < args.takeoff_alt_m < 50.0):
+        parser.error(f"--takeoff-alt-m {args.takeoff_alt_m}: expected a height in (0, 50) m above home")
+    if args.timeout_s <= 0.0:
+        parser.error(f"--timeout-s {args.timeout_s}: expected a positive number of seconds")
+    return args
+
+
+async def fly_episode(args: argparse.Namespace, summary: dict) -> EpisodeResult:
+    """Everything between process start and disarm; fills ``summary`` as it goes."""
+    config = RuntimeConfig(
+        policy=PolicyConfig(model_path=args.model, providers=tuple(args.providers.split(","))),
+        vehicle=VehicleConfig(url=f"udpin://127.0.0.1:{args.mavlink_port}"),
+        recorder=RecorderConfig(log_dir=args.log_dir),
+    )
+    try:
+        model = PolicyModel(config.policy.model_path, config.policy.providers, config.policy.intra_op_threads)
+    except (ModelLoadError, ContractMismatchError) as err:
+        raise FlightError(f"model refused, nothing armed: {err}") from err
+    summary["model"] = {"path": str(model.path), "hidden_size": model.hidden_size, "providers": list(model.providers)}
+    log_path = args.log_dir / LOG_NAME
+    try:
+        recorder = Recorder(log_path, config.recorder, metadata={"model": str(model.path), "entry": "sitl_flight"})
+    except RecorderError as err:
+        raise FlightError(str(err)) from err
+    summary["log"] = str(log_path)
+    vehicle = Vehicle(config.vehicle)
+    camera = SimCameraSource(args.camera_port)
+    loop = FlightLoop(config, model, vehicle, camera, recorder)
+    offboard_started = False
+    try:
+        await vehicle.connect()
+        await loop.start()
+        state = await vehicle.wait_ready()
+        log.info("vehicle ready: home %s (local ENU m)", np.round(state.home_enu_m, 2))
+        try:
+            await loop.wait_first_frame(FIRST_FRAME_TIMEOUT_S)
+        except asyncio.TimeoutError as err:
+            raise FlightError(
+                f"no camera frame on 127.0.0.1:{args.camera_port} within {FIRST_FRAME_TIMEOUT_S} s "
+                f"(camera link: {camera.stats}): is the SITL vehicle serving frames?"
+            ) from err
+        await vehicle.arm()
+        await vehicle.takeoff(args.takeoff_alt_m)
+        await vehicle.wait_takeoff_done(args.takeoff_alt_m)
+        offboard_started = True
+        await vehicle.start_offboard(HOVER)
+        await vehicle.wait_until(lambda s: s.flight_mode == MODE_OFFBOARD, config.vehicle.command_timeout_s, "offboard mode")
+        summary["t_launch_to_offboard_s"] = round(process_age_s(), 3)
+        home_enu_m = vehicle.state().home_enu_m
+        goal_enu_m = home_enu_m + args.goal_rel_home
+        result = await loop.fly(goal_enu_m, args.timeout_s)
+        _fill(summary, result)
+        log.info("episode %s in %.2f s (%d frames, final distance %.2f m)", result.outcome, result.time_s,
+                 result.frames, result.final_distance_m)  # fmt: skip
+        if loop.watchdog.pilot_took_over:
+            log.warning("the pilot took over: not landing, the vehicle is theirs")
+            return result
+        await vehicle.land()
+        await vehicle.wait_disarmed()
+        log.info("landed and disarmed")
+        return result
+    except VehicleError as err:
+        raise FlightError(f"vehicle: {err}") from err
+    except asyncio.CancelledError:
+        if offboard_started:
+            await loop.safe_stop()
+        raise
+    finally:
+        summary["camera"] = vars(camera.stats).copy()
+        await loop.close()
+        await vehicle.close()
+        recorder.close()
+        summary["recorder"] = vars(recorder.stats).copy()
+
+
+def _fill(summary: dict, result: EpisodeResult) -> None:
+    summary.update(
+        outcome=result.outcome,
+        abort_reason=result.abort_reason,
+        time_s=result.time_s,
+        frames=result.frames,
+        frames_received=result.frames_received,
+        missed_deadlines=result.missed_deadlines,
+        bad_frames=result.bad_frames,
+        step_ms=result.step_ms,
+        stage_ms=result.stage_ms,
+        watchdog_trips=result.watchdog_trips,
+        final_distance_m=result.final_distance_m,
+    )
+
+
+async def _main(args: argparse.Namespace, summary: dict) -> int:
+    task = asyncio.current_task()
+    assert task is not None
+    loop = asyncio.get_running_loop()
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(signum, task.cancel)
+    try:
+        result = await fly_episode(args, summary)
+    except FlightError as err:
+        log.error("%s", err)
+        summary["error"] = str(err)
+        if "time_s" in summary:  # it flew; landing (or after) failed
+            return 1
+        summary["abort_reason"] = str(err)
+        return 2
+    except asyncio.CancelledError:
+        log.error("terminated by a signal")
+        summary.update(outcome="aborted", abort_reason="terminated by a signal")
+        return 1
+    return 0 if result.outcome == "success" else 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+    summary: dict = {
+        "outcome": "aborted",
+        "abort_reason": None,
+        "goal_rel_home_enu_m": args.goal_rel_home.tolist(),
+        "takeoff_alt_m": args.takeoff_alt_m,
+        "log": None,
+        "t_launch_to_offboard_s": None,
+        "watchdog_trips": [],
+    }
+    code = asyncio.run(_main(args, summary))
+    args.summary.parent.mkdir(parents=True, exist_ok=True)
+    args.summary.write_text(json.dumps(summary, indent=2))
+    log.info("summary written to %s (outcome %s, exit %d)", args.summary, summary["outcome"], code)
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,343 @@
+"""The autopilot link: MAVSDK-Python >= 4.1 (native asyncio API, no mavsdk_server).
+
+Telemetry (PX4 side: NED world, FRD body) arrives as MAVSDK subscriptions and is kept, with
+its receive time (``time.monotonic_ns``), in a cache; :meth:`Vehicle.state` gives a snapshot on
+the policy side (local ENU world, FLU body) as a :class:`VehicleState`.  Commands wrap MAVSDK's
+Action and Offboard plugins; every await that talks to the autopilot has a timeout and every
+failure raises a :class:`VehicleError` naming the command, the cause and what to check.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Awaitable, Callable, TypeVar
+
+import numpy as np
+from mavsdk.asyncio import ComponentType, Configuration, Mavsdk, MavsdkConnectionError, MavsdkError
+from mavsdk.asyncio.plugins.action import ActionAsync
+from mavsdk.asyncio.plugins.offboard import OffboardAsync
+from mavsdk.asyncio.plugins.offboard import VelocityBodyYawspeed as MavsdkVelocityBodyYawspeed
+from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
+
+from .config import VehicleConfig
+from .contract import HOVER, VelocityBodyYawspeed
+from .contract.frames import euler_from_quat, ned_to_enu, quat_conjugate, quat_ned_frd_to_enu_flu, quat_rotate
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+# MAVSDK's FlightMode names (telemetry.FlightMode) the runtime cares about.
+MODE_OFFBOARD = "OFFBOARD"
+MODE_HOLD = "HOLD"
+# Height tolerance for "takeoff altitude reached" (m): PX4 itself calls a takeoff done within 10%.
+TAKEOFF_ALT_TOLERANCE_FRAC = 0.1
+
+
+class VehicleError(RuntimeError):
+    """Talking to the autopilot failed; the message names the command, the cause and the fix."""
+
+
+class VehicleTimeoutError(VehicleError):
+    """The autopilot did not answer (or a state was not reached) in time."""
+
+
+class VehicleCommandError(VehicleError):
+    """The autopilot (or MAVSDK) refused a command."""
+
+
+@dataclass(frozen=True)
+class VehicleHealth:
+    """The autopilot's pre-flight health flags (MAVSDK ``Telemetry.Health``)."""
+
+    armable: bool = False
+    local_position_ok: bool = False
+    global_position_ok: bool = False
+    home_position_ok: bool = False
+    gyro_ok: bool = False
+    accel_ok: bool = False
+    mag_ok: bool = False
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """Telemetry snapshot on the policy side.
+
+    Positions are in the autopilot's local frame turned ENU (metres; origin = the local NED
+    origin, *not* necessarily home — use ``home_enu_m``); velocities world ENU (m/s); attitude
+    ``quat_enu_flu`` (w, x, y, z) rotates body FLU into world ENU; ``angvel_body_flu_rad_s`` body
+    FLU.  Every ``t_*_ns`` is the receive time on this host's CLOCK_MONOTONIC, 0 = never received.
+    """
+
+    pos_enu_m: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    vel_enu_m_s: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    t_posvel_ns: int = 0
+    quat_enu_flu: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0, 0.0]))
+    t_att_ns: int = 0
+    angvel_body_flu_rad_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    t_angvel_ns: int = 0
+    flight_mode: str = "UNKNOWN"
+    t_mode_ns: int = 0
+    armed: bool = False
+    in_air: bool = False
+    landed_state: str = "UNKNOWN"
+    health: VehicleHealth = field(default_factory=VehicleHealth)
+    t_health_ns: int = 0
+    home_enu_m: np.ndarray | None = None
+
+    @property
+    def t_telemetry_ns(self) -> int:
+        """Receive time of the staler of position/velocity and attitude (0 until both arrived)."""
+        return min(self.t_posvel_ns, self.t_att_ns)
+
+    @property
+    def vel_body_flu_m_s(self) -> np.ndarray:
+        """World velocity rotated into body FLU (m/s)."""
+        return quat_rotate(quat_conjugate(self.quat_enu_flu), self.vel_enu_m_s)
+
+    @property
+    def yaw_enu_rad(self) -> float:
+        """Heading, counter-clockwise from east (rad)."""
+        return float(euler_from_quat(self.quat_enu_flu)[2])
+
+    @property
+    def height_above_home_m(self) -> float:
+        """Height above home (m); NaN until home and position are known."""
+        if self.home_enu_m is None:
+            return float("nan")
+        return float(self.pos_enu_m[2] - self.home_enu_m[2])
+
+
+class Vehicle:
+    """One autopilot over MAVSDK: telemetry cache and commands with timeouts."""
+
+    def __init__(self, config: VehicleConfig = VehicleConfig()) -> None:
+        self.config = config
+        self._mavsdk: Mavsdk | None = None
+        self._action: ActionAsync | None = None
+        self._offboard: OffboardAsync | None = None
+        self._telemetry: TelemetryAsync | None = None
+        self._tasks: list[asyncio.Task] = []
+        self._fields: dict[str, object] = {}
+        self._updated = asyncio.Event()
+        self.setpoints_sent = 0
+
+    # ------------------------------------------------------------------ connection
+
+    async def connect(self) -> None:
+        """Open the MAVLink connection, wait for the autopilot, start the telemetry subscriptions."""
+        url = self.config.url
+        self._mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER))
+        try:
+            await asyncio.wait_for(self._mavsdk.add_any_connection(url), self.config.command_timeout_s)
+        except MavsdkConnectionError as err:
+            raise VehicleError(f"MAVSDK could not open {url!r} ({err}): is the port free and the URL right?") from err
+        except asyncio.TimeoutError as err:
+            raise VehicleTimeoutError(f"opening {url!r} took over {self.config.command_timeout_s} s") from err
+        system = await self._mavsdk.first_autopilot(timeout_s=self.config.connect_timeout_s)
+        if system is None:
+            raise VehicleTimeoutError(
+                f"no autopilot heartbeat on {url!r} within {self.config.connect_timeout_s} s: "
+                "is the autopilot (or SITL vehicle) running and sending to this port?"
+            )
+        self._action = ActionAsync(system)
+        self._offboard = OffboardAsync(system)
+        self._telemetry = TelemetryAsync(system)
+        self._start_subscriptions()
+        log.info("connected to the autopilot on %s", url)
+
+    async def close(self) -> None:
+        """Stop the telemetry subscriptions and release MAVSDK (stops any setpoint re-sending)."""
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        self._tasks.clear()
+        for plugin in (self._offboard, self._action, self._telemetry):
+            if plugin is not None:
+                plugin.destroy()
+        self._offboard = self._action = self._telemetry = None
+        if self._mavsdk is not None:
+            self._mavsdk.destroy()
+            self._mavsdk = None
+
+    # ------------------------------------------------------------------ telemetry
+
+    def _start_subscriptions(self) -> None:
+        tel = self._require(self._telemetry)
+        handlers: dict[str, tuple[Callable, Callable[[object], dict]]] = {
+            "posvel": (tel.subscribe_position_velocity_ned, _posvel_fields),
+            "attitude": (tel.subscribe_attitude_quaternion, _attitude_fields),
+            "angvel": (tel.subscribe_attitude_angular_velocity_body, _angvel_fields),
+            "mode": (tel.subscribe_flight_mode, lambda m: {"flight_mode": m.name}),
+            "armed": (tel.subscribe_armed, lambda a: {"armed": bool(a)}),
+            "in_air": (tel.subscribe_in_air, lambda a: {"in_air": bool(a)}),
+            "landed": (tel.subscribe_landed_state, lambda s: {"landed_state": s.name}),
+            "health": (tel.subscribe_health, _health_fields),
+            "home": (tel.subscribe_home, _home_fields),
+        }
+        stamp_key = {"posvel": "t_posvel_ns", "attitude": "t_att_ns", "angvel": "t_angvel_ns",
+                     "mode": "t_mode_ns", "health": "t_health_ns"}  # fmt: skip
+        for name, (subscribe, convert) in handlers.items():
+            task = asyncio.create_task(self._follow(subscribe, convert, stamp_key.get(name)), name=f"telemetry_{name}")
+            task.add_done_callback(_log_subscription_end)
+            self._tasks.append(task)
+
+    async def _follow(self, subscribe: Callable, convert: Callable[[object], dict], stamp_key: str | None) -> None:
+        async for message in subscribe():
+            fields = convert(message)
+            if stamp_key is not None:
+                fields[stamp_key] = time.monotonic_ns()
+            self._fields.update(fields)
+            self._updated.set()
+            self._updated = asyncio.Event()
+
+    def state(self) -> VehicleState:
+        """The latest telemetry as a :class:`VehicleState` snapshot."""
+        return VehicleState(**self._fields)  # type: ignore[arg-type]
+
+    async def wait_until(self, predicate: Callable[[VehicleState], bool], timeout_s: float, what: str) -> VehicleState:
+        """Wait until ``predicate(state)`` holds; raise :class:`VehicleTimeoutError` naming ``what``."""
+
+        async def wait() -> VehicleState:
+            while True:
+                state = self.state()
+                if predicate(state):
+                    return state
+                await self._updated.wait()
+
+        try:
+            return await asyncio.wait_for(wait(), timeout_s)
+        except asyncio.TimeoutError as err:
+            state = self.state()
+            raise VehicleTimeoutError(
+                f"{what} not reached within {timeout_s} s (mode {state.flight_mode}, armed {state.armed}, "
+                f"landed {state.landed_state}, height above home {state.height_above_home_m:.2f} m, health {state.health})"
+            ) from err
+
+    async def wait_ready(self) -> VehicleState:
+        """Wait until the autopilot is armable with a local position and a home position."""
+        return await self.wait_until(
+            lambda s: s.health.armable and s.health.local_position_ok and s.home_enu_m is not None
+            and s.t_telemetry_ns > 0,
+            self.config.health_timeout_s,
+            "health (armable, local position, home)",
+        )  # fmt: skip
+
+    # ------------------------------------------------------------------ commands
+
+    async def arm(self) -> None:
+        await self._command("arm", self._require(self._action).arm())
+
+    async def disarm(self) -> None:
+        await self._command("disarm", self._require(self._action).disarm())
+
+    async def set_takeoff_altitude(self, altitude_m: float) -> None:
+        """Set the autopilot's takeoff altitude above home (PX4 parameter MIS_TAKEOFF_ALT), m."""
+        await self._command("set takeoff altitude", self._require(self._action).set_takeoff_altitude(float(altitude_m)))
+
+    async def takeoff(self, altitude_m: float | None = None) -> None:
+        """Take off to ``altitude_m`` above home (set first), or to the autopilot's takeoff altitude."""
+        if altitude_m is not None:
+            await self.set_takeoff_altitude(altitude_m)
+        await self._command("takeoff", self._require(self._action).takeoff())
+
+    async def wait_takeoff_done(self, altitude_m: float) -> VehicleState:
+        """Wait until the height above home is within 10 % of ``altitude_m`` and the mode is Hold."""
+        low = altitude_m * (1.0 - TAKEOFF_ALT_TOLERANCE_FRAC)
+        return await self.wait_until(
+            lambda s: s.in_air and s.height_above_home_m >= low and s.flight_mode == MODE_HOLD,
+            self.config.takeoff_timeout_s,
+            f"takeoff to {altitude_m:.2f} m above home and Hold",
+        )
+
+    async def hold(self) -> None:
+        """Switch to Hold (PX4 Loiter) outside offboard; in offboard use :meth:`stop_offboard`."""
+        await self._command("hold", self._require(self._action).hold())
+
+    async def land(self) -> None:
+        await self._command("land", self._require(self._action).land())
+
+    async def wait_disarmed(self) -> VehicleState:
+        """Wait until the vehicle reports landed and disarmed."""
+        return await self.wait_until(
+            lambda s: not s.armed and not s.in_air, self.config.land_timeout_s, "landed and disarmed"
+        )
+
+    async def start_offboard(self, initial: VelocityBodyYawspeed = HOVER) -> None:
+        """Send ``initial`` (a setpoint must exist before offboard starts), then start offboard."""
+        await self.set_velocity_body(initial)
+        await self._command("offboard start", self._require(self._offboard).start())
+
+    async def stop_offboard(self) -> None:
+        """Leave offboard into Hold; MAVSDK stops re-sending the last setpoint."""
+        await self._command("offboard stop (Hold)", self._require(self._offboard).stop())
+
+    async def set_velocity_body(self, cmd: VelocityBodyYawspeed) -> None:
+        """Send a body-frame velocity setpoint (FRD, m/s; yaw speed deg/s, + = turn right).
+
+        MAVSDK sends it at once and then re-sends the last one at 20 Hz by itself.
+        """
+        setpoint = MavsdkVelocityBodyYawspeed(cmd.forward_m_s, cmd.right_m_s, cmd.down_m_s, cmd.yawspeed_deg_s)
+        await self._command("set_velocity_body", self._require(self._offboard).set_velocity_body(setpoint))
+        self.setpoints_sent += 1
+
+    async def _command(self, what: str, awaitable: Awaitable[T]) -> T:
+        try:
+            return await asyncio.wait_for(awaitable, self.config.command_timeout_s)
+        except asyncio.TimeoutError as err:
+            raise VehicleTimeoutError(
+                f"{what}: no answer from the autopilot within {self.config.command_timeout_s} s: is the link up?"
+            ) from err
+        except MavsdkError as err:
+            raise VehicleCommandError(f"{what} refused: {err} (mode {self.state().flight_mode}, "
+                                      f"armed {self.state().armed}); check the autopilot's messages") from err  # fmt: skip
+
+    @staticmethod
+    def _require(plugin: T | None) -> T:
+        if plugin is None:
+            raise VehicleError("not connected to an autopilot: call Vehicle.connect() first")
+        return plugin
+
+
+def _log_subscription_end(task: asyncio.Task) -> None:
+    if not task.cancelled() and task.exception() is not None:
+        log.error("telemetry subscription %s failed; its values go stale", task.get_name(), exc_info=task.exception())
+
+
+def _posvel_fields(pv) -> dict:
+    pos_ned = np.array([pv.position.north_m, pv.position.east_m, pv.position.down_m])
+    vel_ned = np.array([pv.velocity.north_m_s, pv.velocity.east_m_s, pv.velocity.down_m_s])
+    return {"pos_enu_m": ned_to_enu(pos_ned), "vel_enu_m_s": ned_to_enu(vel_ned)}
+
+
+def _attitude_fields(q) -> dict:
+    return {"quat_enu_flu": quat_ned_frd_to_enu_flu(np.array([q.w, q.x, q.y, q.z]))}
+
+
+def _angvel_fields(w) -> dict:
+    # FRD body rates (p, q, r) -> FLU (p, -q, -r).
+    return {"angvel_body_flu_rad_s": np.array([w.roll_rad_s, -w.pitch_rad_s, -w.yaw_rad_s])}
+
+
+def _health_fields(h) -> dict:
+    return {
+        "health": VehicleHealth(
+            armable=bool(h.is_armable),
+            local_position_ok=bool(h.is_local_position_ok),
+            global_position_ok=bool(h.is_global_position_ok),
+            home_position_ok=bool(h.is_home_position_ok),
+            gyro_ok=bool(h.is_gyrometer_calibration_ok),
+            accel_ok=bool(h.is_accelerometer_calibration_ok),
+            mag_ok=bool(h.is_magnetometer_calibration_ok),
+        )
+    }
+
+
+def _home_fields(home) -> dict:
+    local_ned = np.array([home.local_north_m, home.local_east_m, home.local_down_m], dtype=np.float64)
+    if not np.all(np.isfinite(local_ned)):
+        return {}
+    return {"home_enu_m": ned_to_enu(local_ned)}

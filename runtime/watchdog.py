@@ -1,0 +1,289 @@
+"""The safety watchdog (DESIGN §3): detects faults in flight and puts the vehicle in a safe state.
+
+MAVSDK re-sends the last setpoint at 20 Hz by itself, so a stalled loop would keep the vehicle
+flying on a stale command; the watchdog checks independently of the policy task.  Trips:
+stale frame, step over its trip limit (or hung), NaN/Inf action, stale telemetry, pilot left
+offboard, depth invalid fraction above a limit for too long, geofence (horizontal distance from
+where supervision started, height band above home).
+
+Response to a trip: a zero-velocity (hover) setpoint at once, then ``offboard.stop()`` (PX4
+Hold) after ``hold_grace_s``.  Pilot left offboard: the runtime stops commanding at once and
+sends nothing more (no Hold either: the pilot has the vehicle).  Every trip is logged and
+recorded as ``{cause, detail, t_s, detect_ms, response, hold_t_s}`` (and sent to ``on_event``
+with ``event`` = "trip", then again with "hold" once Hold was commanded) where ``t_s`` is seconds since
+supervision started and ``detect_ms`` is the time from the moment the trip condition became
+true (threshold crossed, or the evidence received) to the trip.
+
+Time-based checks run in :meth:`Watchdog.tick` (the watchdog task calls it every ``period_s``);
+the action check runs in :meth:`Watchdog.check_action`, called by the policy task before it
+sends each command.  All times are ``time.monotonic_ns`` values passed in, so tests drive it
+with a fake clock.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from enum import Enum
+from typing import Callable
+
+import numpy as np
+
+from .command_gate import CommandGate
+from .config import WatchdogConfig
+from .vehicle import MODE_OFFBOARD, VehicleError, VehicleState
+
+log = logging.getLogger(__name__)
+
+_NS_PER_MS = 1_000_000
+_NS_PER_S = 1_000_000_000
+
+
+class TripCause(str, Enum):
+    STALE_FRAME = "stale_frame"
+    STEP_DEADLINE = "step_deadline"
+    BAD_ACTION = "bad_action"
+    STALE_TELEMETRY = "stale_telemetry"
+    PILOT_LEFT_OFFBOARD = "pilot_left_offboard"
+    DEPTH_INVALID = "depth_invalid"
+    GEOFENCE = "geofence"
+    POLICY_ERROR = "policy_error"
+
+
+class Response(str, Enum):
+    HOVER_THEN_HOLD = "hover_then_hold"
+    STOP_COMMANDING = "stop_commanding"
+    ALREADY_TRIPPED = "already_tripped"
+
+
+@dataclass
+class Trip:
+    cause: TripCause
+    detail: str
+    t_ns: int
+    detect_ms: float
+    response: Response
+    hold_t_ns: int | None = None
+
+    def record(self, t0_ns: int) -> dict:
+        """JSON-ready record; times in seconds since ``t0_ns``."""
+        return {
+            "cause": self.cause.value,
+            "detail": self.detail,
+            "t_s": round((self.t_ns - t0_ns) / _NS_PER_S, 4),
+            "detect_ms": round(self.detect_ms, 3),
+            "response": self.response.value,
+            "hold_t_s": None if self.hold_t_ns is None else round((self.hold_t_ns - t0_ns) / _NS_PER_S, 4),
+        }
+
+
+@dataclass(frozen=True)
+class WatchInputs:
+    """What the periodic check looks at (times: ns, CLOCK_MONOTONIC; 0 = never)."""
+
+    now_ns: int
+    t_last_frame_capture_ns: int
+    t_step_started_ns: int  # the step in progress (frame taken), 0 = no step running
+    vehicle: VehicleState
+
+
+class Watchdog:
+    """Detects faults and drives the safe-state response through the :class:`CommandGate`."""
+
+    def __init__(
+        self,
+        config: WatchdogConfig,
+        gate: CommandGate,
+        on_event: Callable[[dict], None] | None = None,
+    ) -> None:
+        self.config = config
+        self.gate = gate
+        self._on_event = on_event
+        self.trips: list[Trip] = []
+        self._t0_ns = 0
+        self._supervising = False
+        self._offboard_seen = False
+        self._start_xy_enu_m = np.zeros(2)
+        self._home_z_enu_m = 0.0
+        self._invalid_since_ns: int | None = None
+        self._hold_pending = False
+
+    # ------------------------------------------------------------------ state
+
+    @property
+    def tripped(self) -> Trip | None:
+        """The trip that set the response, or None."""
+        return next((t for t in self.trips if t.response != Response.ALREADY_TRIPPED), None)
+
+    @property
+    def pilot_took_over(self) -> bool:
+        return any(t.cause == TripCause.PILOT_LEFT_OFFBOARD for t in self.trips)
+
+    @property
+    def supervising(self) -> bool:
+        return self._supervising
+
+    def records(self) -> list[dict]:
+        return [t.record(self._t0_ns) for t in self.trips]
+
+    def start(self, now_ns: int, state: VehicleState) -> None:
+        """Begin supervising: offboard was entered at ``state``'s position (local ENU, m)."""
+        if state.home_enu_m is None or not np.all(np.isfinite(state.pos_enu_m)):
+            raise ValueError("watchdog needs a position and a home position to start: wait for Vehicle.wait_ready()")
+        self._t0_ns = now_ns
+        self._supervising = True
+        self._offboard_seen = state.flight_mode == MODE_OFFBOARD
+        self._start_xy_enu_m = np.asarray(state.pos_enu_m[:2], dtype=np.float64).copy()
+        self._home_z_enu_m = float(state.home_enu_m[2])
+        self._invalid_since_ns = None
+        self._hold_pending = False
+        self.trips.clear()
+        self.gate.open_for_policy()
+
+    def stop(self) -> None:
+        """Stop supervising (the loop ended and commands Hold itself): mode changes are ours now."""
+        self._supervising = False
+
+    # ------------------------------------------------------------------ per-step checks
+
+    def note_depth(self, t_capture_ns: int, invalid_frac: float) -> None:
+        """Record each frame's raw invalid-depth fraction for the too-long-invalid check."""
+        if invalid_frac > self.config.depth_invalid_frac_max:
+            if self._invalid_since_ns is None:
+                self._invalid_since_ns = t_capture_ns
+        else:
+            self._invalid_since_ns = None
+
+    async def check_action(self, action: np.ndarray, t_step_started_ns: int, now_ns: int) -> Trip | None:
+        """Before a command is sent: trip on a NaN/Inf action or a step past its trip limit."""
+        if not self._supervising:
+            return None
+        if not np.all(np.isfinite(action)):
+            return await self.trip(TripCause.BAD_ACTION, f"policy action {np.asarray(action).tolist()}", now_ns, now_ns)
+        limit_ns = int(self.config.step_trip_ms * _NS_PER_MS)
+        if now_ns - t_step_started_ns > limit_ns:
+            return await self.trip(
+                TripCause.STEP_DEADLINE,
+                f"step took {(now_ns - t_step_started_ns) / _NS_PER_MS:.1f} ms > {self.config.step_trip_ms:.1f} ms",
+                t_step_started_ns + limit_ns,
+                now_ns,
+            )
+        return None
+
+    # ------------------------------------------------------------------ periodic checks
+
+    async def tick(self, inputs: WatchInputs) -> Trip | None:
+        """Run the time-based checks and the pending Hold; returns a new trip, if any."""
+        if not self._supervising:
+            return None
+        now = inputs.now_ns
+        cfg = self.config
+        v = inputs.vehicle
+        if v.flight_mode == MODE_OFFBOARD and v.t_mode_ns >= self._t0_ns:
+            self._offboard_seen = True
+        trip: Trip | None = None
+        if self._offboard_seen and v.flight_mode != MODE_OFFBOARD and not self.pilot_took_over and not self._hold_sent():
+            trip = await self.trip(TripCause.PILOT_LEFT_OFFBOARD, f"flight mode is now {v.flight_mode}", v.t_mode_ns, now)
+        if self.tripped is None:
+            trip = await self._check_faults(inputs) or trip
+        if self._hold_pending and not self.gate.released:
+            tripped = self.tripped
+            assert tripped is not None
+            if now - tripped.t_ns >= cfg.hold_grace_s * _NS_PER_S:
+                await self._send_hold(tripped, now)
+        return trip
+
+    async def _check_faults(self, inputs: WatchInputs) -> Trip | None:
+        cfg, now, v = self.config, inputs.now_ns, inputs.vehicle
+        frame_limit = int(cfg.frame_stale_ms * _NS_PER_MS)
+        t_frame_ref = max(inputs.t_last_frame_capture_ns, self._t0_ns)
+        if now - t_frame_ref > frame_limit:
+            age_ms = (now - inputs.t_last_frame_capture_ns) / _NS_PER_MS if inputs.t_last_frame_capture_ns else math.inf
+            return await self.trip(
+                TripCause.STALE_FRAME, f"newest frame {age_ms:.0f} ms old > {cfg.frame_stale_ms:.0f} ms",
+                t_frame_ref + frame_limit, now,
+            )  # fmt: skip
+        step_limit = int(cfg.step_trip_ms * _NS_PER_MS)
+        if inputs.t_step_started_ns and now - inputs.t_step_started_ns > step_limit:
+            return await self.trip(
+                TripCause.STEP_DEADLINE,
+                f"step running for {(now - inputs.t_step_started_ns) / _NS_PER_MS:.0f} ms > {cfg.step_trip_ms:.0f} ms",
+                inputs.t_step_started_ns + step_limit, now,
+            )  # fmt: skip
+        tel_limit = int(cfg.telemetry_stale_ms * _NS_PER_MS)
+        t_tel_ref = max(v.t_telemetry_ns, self._t0_ns)
+        if now - t_tel_ref > tel_limit:
+            return await self.trip(
+                TripCause.STALE_TELEMETRY,
+                f"position/attitude {(now - v.t_telemetry_ns) / _NS_PER_MS:.0f} ms old > {cfg.telemetry_stale_ms:.0f} ms",
+                t_tel_ref + tel_limit, now,
+            )  # fmt: skip
+        if self._invalid_since_ns is not None:
+            invalid_limit = int(cfg.depth_invalid_max_s * _NS_PER_S)
+            if now - self._invalid_since_ns > invalid_limit:
+                return await self.trip(
+                    TripCause.DEPTH_INVALID,
+                    f"depth invalid fraction > {cfg.depth_invalid_frac_max:.2f} for "
+                    f"{(now - self._invalid_since_ns) / _NS_PER_S:.1f} s > {cfg.depth_invalid_max_s:.1f} s",
+                    self._invalid_since_ns + invalid_limit, now,
+                )  # fmt: skip
+        if v.t_posvel_ns:
+            dist_m = float(np.linalg.norm(np.asarray(v.pos_enu_m[:2]) - self._start_xy_enu_m))
+            height_m = float(v.pos_enu_m[2]) - self._home_z_enu_m
+            if dist_m > cfg.geofence_radius_m:
+                return await self.trip(
+                    TripCause.GEOFENCE, f"{dist_m:.1f} m from start > {cfg.geofence_radius_m:.1f} m", v.t_posvel_ns, now
+                )
+            if not cfg.altitude_min_m <= height_m <= cfg.altitude_max_m:
+                return await self.trip(
+                    TripCause.GEOFENCE,
+                    f"height {height_m:.2f} m above home outside [{cfg.altitude_min_m:.2f}, {cfg.altitude_max_m:.2f}] m",
+                    v.t_posvel_ns, now,
+                )  # fmt: skip
+        return None
+
+    # ------------------------------------------------------------------ response
+
+    async def trip(self, cause: TripCause, detail: str, t_fault_ns: int, now_ns: int) -> Trip:
+        """Record a trip and respond: hover now (Hold after the grace), or stop commanding."""
+        if cause == TripCause.PILOT_LEFT_OFFBOARD:
+            response = Response.STOP_COMMANDING
+        elif self.tripped is None:
+            response = Response.HOVER_THEN_HOLD
+        else:
+            response = Response.ALREADY_TRIPPED
+        trip = Trip(cause, detail, now_ns, max(0.0, (now_ns - t_fault_ns) / _NS_PER_MS), response)
+        self.trips.append(trip)
+        log.error("watchdog trip %s: %s (detected in %.1f ms) -> %s", cause.value, detail, trip.detect_ms, response.value)
+        if response == Response.STOP_COMMANDING:
+            self.gate.release()
+            self._hold_pending = False
+        elif response == Response.HOVER_THEN_HOLD:
+            self._hold_pending = True
+            try:
+                await self.gate.hover()
+            except VehicleError as err:
+                log.error("watchdog: hover setpoint failed (%s); Hold follows after the grace period", err)
+        self._emit("trip", trip)
+        return trip
+
+    async def _send_hold(self, trip: Trip, now_ns: int) -> None:
+        try:
+            sent = await self.gate.hold()
+        except VehicleError as err:
+            log.error("watchdog: Hold (offboard.stop) failed (%s); retrying on the next check", err)
+            return
+        self._hold_pending = False
+        if sent:
+            trip.hold_t_ns = now_ns
+            log.warning("watchdog: vehicle commanded to Hold %.2f s after the %s trip", (now_ns - trip.t_ns) / _NS_PER_S, trip.cause.value)
+            self._emit("hold", trip)
+
+    def _hold_sent(self) -> bool:
+        trip = self.tripped
+        return trip is not None and trip.hold_t_ns is not None
+
+    def _emit(self, event: str, trip: Trip) -> None:
+        if self._on_event is not None:
+            self._on_event({"event": event, **trip.record(self._t0_ns)})

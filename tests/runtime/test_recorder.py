@@ -1,0 +1,158 @@
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.exceptions import EndOfFile, RecordLengthLimitExceeded
+from mcap.reader import NonSeekingReader, make_reader
+from mcap.decoder import DecoderFactory as McapDecoderFactory
+from mcap_protobuf.decoder import DecoderFactory
+
+from runtime.camera import Frame
+from runtime.config import RecorderConfig
+from runtime.contract import action_to_mavsdk, action_to_velocity_flu
+from runtime.recorder import (
+    TOPIC_ACTION, TOPIC_COMMAND, TOPIC_DEPTH, TOPIC_GRAY, TOPIC_LATENT, TOPIC_OBSERVATION, TOPIC_STATE,
+    TOPIC_TIMING, TOPIC_WATCHDOG, Recorder, RecorderError,
+)  # fmt: skip
+from runtime.vehicle import VehicleState
+
+ALL_TOPICS = {TOPIC_DEPTH, TOPIC_GRAY, TOPIC_STATE, TOPIC_OBSERVATION, TOPIC_ACTION, TOPIC_COMMAND,
+              TOPIC_LATENT, TOPIC_TIMING, TOPIC_WATCHDOG}  # fmt: skip
+
+
+class JsonDecoderFactory(McapDecoderFactory):
+    def decoder_for(self, message_encoding, schema):
+        return json.loads if message_encoding == "json" else None
+
+
+DECODERS = [DecoderFactory(), JsonDecoderFactory()]
+
+
+def _frame(seq: int, t_ns: int) -> Frame:
+    depth = np.linspace(0.0, 9.0, 120 * 212, dtype=np.float32).reshape(120, 212)
+    depth[0, :10] = np.nan
+    gray = (np.arange(120 * 212) % 256).astype(np.uint8).reshape(120, 212)
+    return Frame(t_capture_ns=t_ns, depth_m=depth, gray_u8=gray, seq=seq)
+
+
+def _log_one_step(rec: Recorder, seq: int, t_ns: int) -> None:
+    frame = _frame(seq, t_ns)
+    rec.log_frame(frame)
+    rec.log_state(t_ns, VehicleState(pos_enu_m=np.array([1.0, 2.0, 3.0]), t_posvel_ns=t_ns, flight_mode="OFFBOARD"))
+    action = np.array([0.5, np.nan, -0.2])
+    rec.log_step(frame, np.arange(79, dtype=np.float32), action, np.clip(action, -1, 1), np.ones(64, np.float32))
+    clean = np.array([0.5, 0.1, -0.2])
+    rec.log_command(t_ns, frame, action_to_velocity_flu(clean), action_to_mavsdk(clean), "policy", True)
+    rec.log_timing(frame, {"preprocess": 1.5, "inference": 2.25, "step": 4.0}, missed_deadline=False)
+
+
+def test_every_channel_reads_back(tmp_path):
+    path = tmp_path / "logs" / "flight.mcap"
+    rec = Recorder(path, RecorderConfig(flush_period_s=0.2), metadata={"model": "m.onnx"})
+    t0 = time.monotonic_ns()
+    for k in range(5):
+        _log_one_step(rec, k + 1, t0 + k * 66_666_667)
+    rec.log_watchdog(t0, {"event": "start", "cause": None})
+    rec.close()
+    assert rec.stats.dropped == 0
+
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=DECODERS)
+        summary = reader.get_summary()
+        assert {c.topic for c in summary.channels.values()} == ALL_TOPICS
+        assert {s.name for s in summary.schemas.values()} >= {"foxglove.RawImage", "cmnav.VehicleState", "cmnav.Action"}
+        messages: dict[str, list] = {}
+        for schema, channel, message, decoded in reader.iter_decoded_messages():
+            messages.setdefault(channel.topic, []).append((message, decoded))
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+    assert meta["cmnav"]["model"] == "m.onnx"
+    offset = int(meta["cmnav"]["monotonic_to_unix_offset_ns"])
+    assert {t: len(v) for t, v in messages.items()} == {**{t: 5 for t in ALL_TOPICS}, TOPIC_WATCHDOG: 1}
+
+    depth_msg, depth = messages[TOPIC_DEPTH][-1]
+    assert depth_msg.log_time == t0 + 4 * 66_666_667 + offset
+    assert (depth.width, depth.height, depth.encoding, depth.frame_id) == (212, 120, "32FC1", "camera")
+    depth_m = np.frombuffer(depth.data, "<f4").reshape(120, 212)
+    np.testing.assert_array_equal(depth_m, _frame(5, 0).depth_m)  # NaN (invalid) survives
+    _, gray = messages[TOPIC_GRAY][0]
+    assert gray.encoding == "mono8"
+    np.testing.assert_array_equal(np.frombuffer(gray.data, np.uint8).reshape(120, 212), _frame(1, 0).gray_u8)
+
+    action = messages[TOPIC_ACTION][0][1]
+    assert action["raw"] == [0.5, None, -0.2] and action["frame_seq"] == 1
+    assert len(messages[TOPIC_OBSERVATION][0][1]["observation"]) == 79
+    assert len(messages[TOPIC_LATENT][0][1]["latent"]) == 64
+    command = messages[TOPIC_COMMAND][0][1]
+    assert command["source"] == "policy" and command["yawspeed_deg_s"] == pytest.approx(12.0)
+    assert messages[TOPIC_TIMING][0][1]["stages_ms"]["inference"] == 2.25
+    state = messages[TOPIC_STATE][0][1]
+    assert state["pos_enu_m"] == [1.0, 2.0, 3.0] and state["flight_mode"] == "OFFBOARD"
+
+
+def test_unwritable_log_dir_named(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    with pytest.raises(RecorderError, match="cannot create flight log"):
+        Recorder(blocker / "flight.mcap")
+
+
+WRITER = textwrap.dedent(
+    """
+    import sys, time
+    sys.path.insert(0, {root!r})
+    sys.path.insert(0, {tests!r})
+    from test_recorder import _log_one_step
+    from runtime.config import RecorderConfig
+    from runtime.recorder import Recorder
+
+    rec = Recorder(sys.argv[1], RecorderConfig(flush_period_s=0.5))
+    rec.log_watchdog(time.monotonic_ns(), {{"event": "start"}})
+    seq = 0
+    while True:
+        seq += 1
+        _log_one_step(rec, seq, time.monotonic_ns())
+        print(seq, flush=True)
+        time.sleep(1 / 15)
+    """
+)
+
+
+def test_sigkilled_writer_loses_at_most_about_a_second(tmp_path):
+    path = tmp_path / "killed.mcap"
+    script = WRITER.format(root=str(Path.cwd()), tests=str(Path(__file__).parent))
+    proc = subprocess.Popen([sys.executable, "-c", script, str(path)], stdout=subprocess.PIPE, text=True)
+    try:
+        last_logged = 0
+        while last_logged < 40:  # ~2.7 s of flight at 15 Hz
+            line = proc.stdout.readline()
+            assert line, f"writer exited early with {proc.wait()}"
+            last_logged = int(line)
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.wait()
+
+    seqs: dict[str, int] = {}
+    with open(path, "rb") as f:
+        # A killed log has no summary: stream it (make_reader on a non-seekable stream does the same).
+        # It ends in a cut record, or in the unfinished chunk whose length is still a placeholder.
+        reader = NonSeekingReader(f, decoder_factories=DECODERS)
+        with pytest.raises((EndOfFile, RecordLengthLimitExceeded)):
+            for _, channel, message, decoded in reader.iter_decoded_messages(log_time_order=False):
+                if channel.topic in (TOPIC_DEPTH, TOPIC_GRAY, TOPIC_STATE):
+                    seqs[channel.topic] = seqs.get(channel.topic, 0) + 1
+                elif channel.topic != TOPIC_WATCHDOG:
+                    seqs[channel.topic] = max(seqs.get(channel.topic, 0), decoded["frame_seq"])
+                else:
+                    seqs[channel.topic] = 1
+    assert set(seqs) == ALL_TOPICS
+    # Flushed every 0.5 s: at most ~1 s (15 frames) lost, with slack for a loaded machine.
+    del seqs[TOPIC_WATCHDOG]
+    assert min(seqs.values()) >= last_logged - 23, seqs

@@ -1,0 +1,38 @@
+"""``python -m runtime.sitl_flight``: refusals before anything is armed (no vehicle needed)."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from tests.runtime.onnx_models import save, step_model
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "runtime.sitl_flight", *args], capture_output=True, text=True,
+                          timeout=60, cwd=ROOT)  # fmt: skip
+
+
+def _args(tmp_path: Path, model: Path, goal: str = "9,1,0.5") -> list[str]:
+    return ["--mavlink-port", "9", "--camera-port", "9", "--model", str(model), "--goal-rel-home", goal,
+            "--takeoff-alt-m", "1.5", "--timeout-s", "5", "--log-dir", str(tmp_path / "logs"),
+            "--summary", str(tmp_path / "summary.json")]  # fmt: skip
+
+
+def test_wrong_model_is_refused_before_connecting(tmp_path):
+    model = save(step_model(metadata={}), tmp_path / "old.onnx")
+    proc = _run(*_args(tmp_path, model))
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["outcome"] == "aborted"
+    assert "model refused, nothing armed" in summary["abort_reason"]
+    assert "carries no cmnav contract metadata" in summary["abort_reason"]
+    assert summary["goal_rel_home_enu_m"] == [9.0, 1.0, 0.5] and summary["watchdog_trips"] == []
+
+
+def test_bad_goal_argument_is_named(tmp_path):
+    proc = _run(*_args(tmp_path, tmp_path / "m.onnx", goal="9,1"))
+    assert proc.returncode == 2
+    assert "--goal-rel-home '9,1': expected three numbers" in proc.stderr

@@ -1,0 +1,266 @@
+"""Fault injection on fake clocks: every trip -> hover at once, Hold after the grace period."""
+
+import asyncio
+import dataclasses
+
+import numpy as np
+import pytest
+
+from runtime.command_gate import CommandGate
+from runtime.config import WatchdogConfig
+from runtime.contract import HOVER, VelocityBodyYawspeed
+from runtime.vehicle import VehicleState
+from runtime.watchdog import Response, TripCause, WatchInputs, Watchdog
+
+MS = 1_000_000
+T0 = 10_000 * MS
+CFG = WatchdogConfig(
+    frame_stale_ms=250.0, step_trip_ms=133.0, telemetry_stale_ms=500.0, depth_invalid_frac_max=0.9,
+    depth_invalid_max_s=1.0, geofence_radius_m=10.0, altitude_min_m=0.3, altitude_max_m=5.0, hold_grace_s=1.0,
+)  # fmt: skip
+
+
+class FakeVehicle:
+    def __init__(self):
+        self.calls: list[tuple[str, object]] = []
+
+    async def set_velocity_body(self, cmd: VelocityBodyYawspeed) -> None:
+        self.calls.append(("setpoint", cmd))
+
+    async def stop_offboard(self) -> None:
+        self.calls.append(("hold", None))
+
+
+def _state(t_ns: int, pos=(1.0, 2.0, 1.5), mode="OFFBOARD", t_mode_ns=None) -> VehicleState:
+    return VehicleState(
+        pos_enu_m=np.array(pos), vel_enu_m_s=np.zeros(3), t_posvel_ns=t_ns, t_att_ns=t_ns, t_angvel_ns=t_ns,
+        flight_mode=mode, t_mode_ns=T0 if t_mode_ns is None else t_mode_ns, armed=True, in_air=True,
+        home_enu_m=np.array([1.0, 2.0, 0.0]),
+    )  # fmt: skip
+
+
+class Rig:
+    """A watchdog supervising a healthy flight from T0; ``healthy(now)`` = fresh frame and telemetry."""
+
+    def __init__(self, config=CFG):
+        self.vehicle = FakeVehicle()
+        self.events: list[dict] = []
+        self.watchdog = Watchdog(config, CommandGate(self.vehicle), on_event=self.events.append)
+        self.watchdog.start(T0, _state(T0))
+
+    def inputs(self, now, frame_ns=None, step_ns=0, **state_changes) -> WatchInputs:
+        state = dataclasses.replace(_state(now), **state_changes)
+        return WatchInputs(now_ns=now, t_last_frame_capture_ns=now if frame_ns is None else frame_ns,
+                           t_step_started_ns=step_ns, vehicle=state)  # fmt: skip
+
+    async def tick(self, now, **kw):
+        return await self.watchdog.tick(self.inputs(now, **kw))
+
+
+def run(coro):
+    return asyncio.run(coro)
+
+
+def _assert_hover_then_hold(rig: Rig, trip, t_trip_ns: int):
+    assert trip is not None and trip.response == Response.HOVER_THEN_HOLD
+    assert rig.vehicle.calls == [("setpoint", HOVER)]  # hover at once
+    assert not rig.watchdog.gate.policy_open
+
+
+async def _finish_grace(rig: Rig, t_trip_ns: int, **kw):
+    await rig.tick(t_trip_ns + 900 * MS, **kw)
+    assert ("hold", None) not in rig.vehicle.calls  # still inside the grace period
+    await rig.tick(t_trip_ns + 1_001 * MS, **kw)
+    assert rig.vehicle.calls == [("setpoint", HOVER), ("hold", None)]
+    assert rig.watchdog.tripped.hold_t_ns == t_trip_ns + 1_001 * MS
+    assert [e["event"] for e in rig.events] == ["trip", "hold"]
+
+
+def test_healthy_flight_never_trips():
+    async def main():
+        rig = Rig()
+        for k in range(200):
+            assert await rig.tick(T0 + k * 20 * MS) is None
+        assert rig.vehicle.calls == [] and rig.watchdog.gate.policy_open
+
+    run(main())
+
+
+def test_stale_frame():
+    async def main():
+        rig = Rig()
+        last_frame = T0 + 100 * MS
+        assert await rig.tick(T0 + 340 * MS, frame_ns=last_frame) is None
+        now = T0 + 360 * MS
+        trip = await rig.tick(now, frame_ns=last_frame)
+        assert trip.cause == TripCause.STALE_FRAME
+        assert trip.detect_ms == pytest.approx(10.0)  # threshold crossed at 350 ms, seen at 360 ms
+        _assert_hover_then_hold(rig, trip, now)
+        await _finish_grace(rig, now, frame_ns=last_frame)
+        assert rig.events[0]["cause"] == "stale_frame" and rig.events[0]["t_s"] == pytest.approx(0.36)
+
+    run(main())
+
+
+def test_no_frame_at_all_after_start():
+    async def main():
+        rig = Rig()
+        trip = await rig.tick(T0 + 260 * MS, frame_ns=0)
+        assert trip.cause == TripCause.STALE_FRAME and trip.detect_ms == pytest.approx(10.0)
+
+    run(main())
+
+
+def test_nan_and_inf_action():
+    for bad in (np.nan, np.inf):
+
+        async def main():
+            rig = Rig()
+            action = np.array([0.1, bad, 0.0])
+            assert await rig.watchdog.check_action(np.zeros(3), T0, T0 + 5 * MS) is None
+            trip = await rig.watchdog.check_action(action, T0 + 100 * MS, T0 + 110 * MS)
+            assert trip.cause == TripCause.BAD_ACTION and trip.detect_ms == 0.0
+            _assert_hover_then_hold(rig, trip, T0 + 110 * MS)
+            await _finish_grace(rig, T0 + 110 * MS)
+
+        run(main())
+
+
+def test_step_over_deadline_at_check_and_while_hung():
+    async def main():
+        rig = Rig()
+        trip = await rig.watchdog.check_action(np.zeros(3), T0, T0 + 150 * MS)
+        assert trip.cause == TripCause.STEP_DEADLINE and trip.detect_ms == pytest.approx(17.0)
+        _assert_hover_then_hold(rig, trip, T0 + 150 * MS)
+
+        hung = Rig()  # the step never returns: the periodic check catches it
+        assert await hung.tick(T0 + 120 * MS, step_ns=T0) is None
+        trip = await hung.tick(T0 + 140 * MS, step_ns=T0)
+        assert trip.cause == TripCause.STEP_DEADLINE and trip.detect_ms == pytest.approx(7.0)
+        await _finish_grace(hung, T0 + 140 * MS, step_ns=T0)
+
+    run(main())
+
+
+def test_stale_telemetry():
+    async def main():
+        rig = Rig()
+        t_tel = T0 + 50 * MS
+        trip = await rig.tick(T0 + 560 * MS, t_posvel_ns=t_tel, t_att_ns=T0 + 540 * MS)
+        assert trip.cause == TripCause.STALE_TELEMETRY and trip.detect_ms == pytest.approx(10.0)
+        _assert_hover_then_hold(rig, trip, T0 + 560 * MS)
+
+    run(main())
+
+
+def test_pilot_left_offboard_stops_commanding_at_once():
+    async def main():
+        rig = Rig()
+        t_mode = T0 + 2_000 * MS
+        assert await rig.tick(T0 + 1_990 * MS) is None
+        trip = await rig.tick(T0 + 2_015 * MS, flight_mode="POSCTL", t_mode_ns=t_mode)
+        assert trip.cause == TripCause.PILOT_LEFT_OFFBOARD and trip.response == Response.STOP_COMMANDING
+        assert trip.detect_ms == pytest.approx(15.0)
+        assert rig.watchdog.gate.released and rig.vehicle.calls == []
+        # Nothing more is sent: no hover, no Hold, no policy setpoint, whatever else goes wrong.
+        assert not await rig.watchdog.gate.send_policy(HOVER)
+        for k in range(100):
+            await rig.tick(T0 + 2_020 * MS + k * 50 * MS, frame_ns=T0, flight_mode="POSCTL", t_mode_ns=t_mode)
+        assert rig.vehicle.calls == []
+        assert [e["cause"] for e in rig.events] == ["pilot_left_offboard"]
+
+    run(main())
+
+
+def test_pilot_takeover_during_grace_cancels_hold():
+    async def main():
+        rig = Rig()
+        trip = await rig.tick(T0 + 300 * MS, frame_ns=T0)
+        assert trip.cause == TripCause.STALE_FRAME
+        await rig.tick(T0 + 500 * MS, frame_ns=T0, flight_mode="ALTCTL", t_mode_ns=T0 + 480 * MS)
+        await rig.tick(T0 + 2_000 * MS, frame_ns=T0, flight_mode="ALTCTL", t_mode_ns=T0 + 480 * MS)
+        assert rig.vehicle.calls == [("setpoint", HOVER)]
+        assert rig.watchdog.pilot_took_over
+
+    run(main())
+
+
+def test_mode_lag_right_after_offboard_start_is_not_a_takeover():
+    async def main():
+        rig = Rig()
+        rig.watchdog.start(T0, _state(T0, mode="HOLD", t_mode_ns=T0 - 500 * MS))
+        assert await rig.tick(T0 + 100 * MS, flight_mode="HOLD", t_mode_ns=T0 - 500 * MS) is None
+        assert await rig.tick(T0 + 300 * MS, flight_mode="OFFBOARD", t_mode_ns=T0 + 290 * MS) is None
+        trip = await rig.tick(T0 + 400 * MS, flight_mode="HOLD", t_mode_ns=T0 + 390 * MS)
+        assert trip.cause == TripCause.PILOT_LEFT_OFFBOARD
+
+    run(main())
+
+
+def test_our_own_hold_is_not_a_takeover():
+    async def main():
+        rig = Rig()
+        now = T0 + 300 * MS
+        await rig.tick(now, frame_ns=T0)
+        await rig.tick(now + 1_100 * MS, frame_ns=T0)
+        assert rig.vehicle.calls[-1] == ("hold", None)
+        assert await rig.tick(now + 1_300 * MS, frame_ns=T0, flight_mode="HOLD", t_mode_ns=now + 1_200 * MS) is None
+        assert not rig.watchdog.pilot_took_over
+
+    run(main())
+
+
+def test_depth_invalid_too_long():
+    async def main():
+        rig = Rig()
+        for k in range(10):  # mostly invalid, but a good frame resets the timer
+            rig.watchdog.note_depth(T0 + k * 66 * MS, 0.95 if k != 5 else 0.2)
+            assert await rig.tick(T0 + k * 66 * MS) is None
+        t_bad = T0 + 6 * 66 * MS
+        for k in range(6, 30):
+            rig.watchdog.note_depth(T0 + k * 66 * MS, 0.97)
+        assert await rig.tick(t_bad + 990 * MS) is None
+        trip = await rig.tick(t_bad + 1_012 * MS)
+        assert trip.cause == TripCause.DEPTH_INVALID and trip.detect_ms == pytest.approx(12.0)
+        _assert_hover_then_hold(rig, trip, t_bad + 1_012 * MS)
+
+    run(main())
+
+
+@pytest.mark.parametrize(
+    "pos, detail",
+    [((12.0, 2.0, 1.5), "from start"), ((1.0, 2.0, 0.1), "above home"), ((1.0, 2.0, 6.0), "above home")],
+)
+def test_geofence(pos, detail):
+    async def main():
+        rig = Rig()
+        now = T0 + 500 * MS
+        trip = await rig.tick(now, pos_enu_m=np.array(pos), t_posvel_ns=now - 3 * MS)
+        assert trip.cause == TripCause.GEOFENCE and detail in trip.detail
+        assert trip.detect_ms == pytest.approx(3.0)
+        _assert_hover_then_hold(rig, trip, now)
+
+    run(main())
+
+
+def test_only_first_fault_sets_the_response_and_stop_ends_supervision():
+    async def main():
+        rig = Rig()
+        await rig.tick(T0 + 300 * MS, frame_ns=T0)
+        later = await rig.watchdog.check_action(np.array([np.nan, 0, 0]), T0 + 310 * MS, T0 + 320 * MS)
+        assert later.response == Response.ALREADY_TRIPPED
+        assert rig.vehicle.calls == [("setpoint", HOVER)]
+        assert rig.watchdog.tripped.cause == TripCause.STALE_FRAME
+
+        quiet = Rig()
+        quiet.watchdog.stop()
+        assert await quiet.tick(T0 + 10_000 * MS, frame_ns=0, flight_mode="HOLD", t_mode_ns=T0 + 9_000 * MS) is None
+        assert quiet.vehicle.calls == []
+
+    run(main())
+
+
+def test_start_needs_position_and_home():
+    rig = Rig()
+    with pytest.raises(ValueError, match="home position"):
+        rig.watchdog.start(T0, dataclasses.replace(_state(T0), home_enu_m=None))

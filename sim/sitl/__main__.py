@@ -1,0 +1,67 @@
+"""``python -m sim.sitl``: run one SITL vehicle until SIGTERM / SIGINT (see sim/sitl/__init__)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from pathlib import Path
+
+from .camera_server import CameraPortError
+from .vehicle import SitlConfig, SitlVehicle, limit_torch_threads
+
+log = logging.getLogger("sim.sitl")
+
+
+def parse_args(argv: list[str] | None = None) -> SitlConfig:
+    parser = argparse.ArgumentParser(
+        prog="python -m sim.sitl",
+        description="A PX4-like quadrotor in a simulated room: MAVLink 2 over UDP to 127.0.0.1:MAVLINK_PORT "
+        "(MAVSDK: udpin://127.0.0.1:MAVLINK_PORT), camera frames over TCP 127.0.0.1:CAMERA_PORT. "
+        "Writes the episode JSON once ready and the trace JSON on SIGTERM/SIGINT.",
+    )
+    parser.add_argument("--mavlink-port", type=int, required=True, help="UDP port the MAVLink client listens on")
+    parser.add_argument("--camera-port", type=int, required=True, help="TCP port to serve camera frames on")
+    parser.add_argument("--level", type=int, required=True, help="curriculum level = number of obstacles")
+    parser.add_argument("--seed", type=int, required=True, help="world seed")
+    parser.add_argument("--episode-json", type=Path, required=True, help="where to write the episode description")
+    parser.add_argument("--trace", type=Path, required=True, help="where to write the ground-truth trace at exit")
+    parser.add_argument("--physics-hz", type=float, default=100.0, help="physics and MAVLink loop rate (default 100)")
+    parser.add_argument("--camera-hz", type=float, default=15.0, help="camera frame rate (default 15)")
+    args = parser.parse_args(argv)
+    config = SitlConfig(
+        args.mavlink_port, args.camera_port, args.level, args.seed, args.episode_json, args.trace,
+        args.physics_hz, args.camera_hz,
+    )  # fmt: skip
+    try:
+        config.validate()
+    except ValueError as err:
+        parser.error(str(err))
+    return config
+
+
+def main(argv: list[str] | None = None) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    config = parse_args(argv)
+    limit_torch_threads()
+    stop = threading.Event()
+
+    def on_signal(signum: int, _frame) -> None:
+        log.info("%s received: shutting down", signal.Signals(signum).name)
+        stop.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    try:
+        vehicle = SitlVehicle(config)
+    except CameraPortError as err:
+        log.error("%s", err)
+        return 2
+    vehicle.run(stop)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,93 @@
+"""Renders what the vehicle's camera sees, at the camera rate, from whatever pose it is given.
+
+The feed takes a pose source (a callable returning the latest body pose), not the dynamics, so
+the same world and camera can follow our own dynamics or, later, a real PX4 SIH's pose.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from runtime.camera.frame import Frame
+from runtime.contract.images import invalid_depth_fraction
+from sim.camera import CameraModel, camera_pose
+from sim.render import render
+from sim.world import WorldBatch
+
+from .kinematics import Kinematics
+
+log = logging.getLogger(__name__)
+
+
+class CameraFeed:
+    """A thread that renders one frame per period (deadline-scheduled, no drift) and hands it to
+    ``publish``.  A render that overruns its period skips the missed deadlines."""
+
+    def __init__(
+        self,
+        world: WorldBatch,
+        camera: CameraModel,
+        pose_source: Callable[[], Kinematics],
+        publish: Callable[[Frame], None],
+        rate_hz: float,
+    ) -> None:
+        if world.batch_size != 1:
+            raise ValueError(f"the camera feed renders one world, got a batch of {world.batch_size}")
+        if not rate_hz > 0.0:
+            raise ValueError(f"camera rate {rate_hz} Hz must be > 0")
+        self._world = world
+        self._camera = camera
+        self._pose_source = pose_source
+        self._publish = publish
+        self._period_s = 1.0 / rate_hz
+        self._seq = 0
+        self.skipped_deadlines = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="camera-render", daemon=True)
+
+    def render_frame(self, kin: Kinematics) -> Frame:
+        """Render the view from body pose ``kin``; t_capture_ns = time.monotonic_ns() now."""
+        t_capture_ns = time.monotonic_ns()
+        pos = torch.as_tensor(kin.pos_enu_m, dtype=torch.float32).reshape(1, 3)
+        quat = torch.as_tensor(kin.quat_enu_flu, dtype=torch.float32).reshape(1, 4)
+        cam_pos, cam_quat = camera_pose(pos, quat, self._camera)
+        with torch.no_grad():
+            out = render(self._world, cam_pos, cam_quat, self._camera)
+        depth_m = np.ascontiguousarray(out.depth_m[0].numpy(), dtype=np.float32)
+        gray_u8 = np.ascontiguousarray(out.gray_u8[0].numpy(), dtype=np.uint8)
+        frame = Frame(
+            t_capture_ns=t_capture_ns,
+            depth_m=depth_m,
+            gray_u8=gray_u8,
+            seq=self._seq,
+            meta={"invalid_depth_frac": invalid_depth_fraction(depth_m)},
+        )
+        self._seq += 1
+        return frame
+
+    def start(self) -> None:
+        """Render and publish the first frame now (so a client never waits for one), then run."""
+        self._publish(self.render_frame(self._pose_source()))
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=2.0)
+
+    def _run(self) -> None:
+        next_s = time.monotonic() + self._period_s
+        while not self._stop.wait(max(0.0, next_s - time.monotonic())):
+            self._publish(self.render_frame(self._pose_source()))
+            next_s += self._period_s
+            now = time.monotonic()
+            if now > next_s:
+                missed = int((now - next_s) / self._period_s) + 1
+                self.skipped_deadlines += missed
+                next_s += missed * self._period_s

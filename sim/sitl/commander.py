@@ -1,0 +1,246 @@
+"""PX4's commander, reduced to what a companion computer can observe: arming rules, mode
+switching, take-off and landing sequences, land detection and auto-disarm, the offboard-loss
+failsafe, and what each mode asks of the velocity controller.
+
+Pure logic: every method takes the time (time.monotonic, s) and the vehicle's
+:class:`~sim.sitl.kinematics.Kinematics`; nothing here does I/O.  Results are MAV_RESULT values;
+notable events are queued as (severity, text) for STATUSTEXT and the trace.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from pymavlink.dialects.v20 import common as mavlink
+
+from . import flight_tasks
+from .flight_tasks import VelocityCommand
+from .kinematics import Kinematics
+from .params import ParamTable
+from .px4 import HOLD, LAND, OFFBOARD, POSCTL, TAKEOFF, Px4Mode
+from .setpoints import STICK_TIMEOUT_S, OffboardSetpoint, Sticks
+
+log = logging.getLogger(__name__)
+
+ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
+DENIED = mavlink.MAV_RESULT_DENIED
+TEMPORARILY_REJECTED = mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+
+# OFFBOARD is entered only with a setpoint at most this old (PX4 wants the stream running first).
+OFFBOARD_ENTRY_MAX_SETPOINT_AGE_S = 0.5
+# Take-off is complete (-> Hold) within this height of the target (PX4: NAV_MC_ALT_RAD is 0.8 m;
+# tighter here so the vehicle really is at the episode's start height when Hold reports).
+TAKEOFF_ACCEPTANCE_M = 0.1
+# DO_SET_MODE can select these; PX4's manual modes need attitude sticks this vehicle does not fly.
+SELECTABLE_MODES = (HOLD, TAKEOFF, LAND, OFFBOARD, POSCTL)
+
+
+@dataclass(frozen=True)
+class Event:
+    """Something a pilot should read: MAV_SEVERITY and a STATUSTEXT-sized text."""
+
+    t_s: float
+    severity: int
+    text: str
+
+
+class Commander:
+    """Arming state, flight mode and the targets of the current mode (see the module doc)."""
+
+    def __init__(self, params: ParamTable, home_enu_m: np.ndarray, kin: Kinematics, t_s: float) -> None:
+        self._params = params
+        self._home_enu_m = np.asarray(home_enu_m, dtype=np.float64)
+        self.armed = False
+        self.crashed = False
+        # Boot in Hold, a mode that needs no pilot input.  Which mode a real PX4 without RC shows
+        # before take-off depends on its version and parameters; nothing in the runtime relies on it.
+        self.mode = HOLD
+        self.mode_log: list[tuple[float, str]] = [(t_s, HOLD.name)]
+        self._events: list[Event] = []
+        self._setpoint: OffboardSetpoint | None = None
+        self._sticks: Sticks | None = None
+        self._target_enu_m = kin.pos_enu_m.copy()
+        self._target_yaw_enu_rad = kin.yaw_enu_rad
+        self._t_armed_s = t_s
+        self._airborne_since_arm = False
+        self._on_ground = kin.on_ground
+        self._t_ground_s = t_s
+
+    # ---- state the telemetry reports ------------------------------------------------------
+
+    @property
+    def landed_state(self) -> int:
+        """MAV_LANDED_STATE as EXTENDED_SYS_STATE reports it.  A crashed vehicle is down (MAVLink
+        has no "crashed" state), so a client waiting for "disarmed and not in air" is released."""
+        if self._on_ground or self.crashed:
+            return mavlink.MAV_LANDED_STATE_ON_GROUND
+        if self.armed and self.mode == TAKEOFF:
+            return mavlink.MAV_LANDED_STATE_TAKEOFF
+        if self.armed and self.mode == LAND:
+            return mavlink.MAV_LANDED_STATE_LANDING
+        return mavlink.MAV_LANDED_STATE_IN_AIR
+
+    @property
+    def armable(self) -> bool:
+        """Pre-arm checks pass (SYS_STATUS's pre-arm bit): on the ground and not crashed."""
+        return self._on_ground and not self.crashed
+
+    def drain_events(self) -> list[Event]:
+        """Events since the last call, oldest first."""
+        events, self._events = self._events, []
+        return events
+
+    # ---- commands -------------------------------------------------------------------------
+
+    def arm(self, t_s: float, kin: Kinematics) -> int:
+        """Arm if landed, not crashed, and (in OFFBOARD) with setpoints streaming."""
+        if self.armed:
+            return ACCEPTED
+        if self.crashed:
+            return self._refuse(t_s, DENIED, "Arming denied: vehicle crashed")
+        if not kin.on_ground:
+            return self._refuse(t_s, DENIED, "Arming denied: not landed")
+        if self.mode == OFFBOARD and not self._setpoint_fresh(t_s, OFFBOARD_ENTRY_MAX_SETPOINT_AGE_S):
+            return self._refuse(t_s, DENIED, "Arming denied: no offboard setpoints")
+        self.armed = True
+        self._t_armed_s = t_s
+        self._airborne_since_arm = False
+        self._event(t_s, mavlink.MAV_SEVERITY_INFO, "Armed by external command")
+        return ACCEPTED
+
+    def disarm(self, t_s: float, kin: Kinematics, force: bool) -> int:
+        """Disarm on the ground; in the air only when forced (the motors stop, it falls)."""
+        if not self.armed:
+            return ACCEPTED
+        if not kin.on_ground and not force:
+            return self._refuse(t_s, DENIED, "Disarming denied: not landed")
+        self._disarm(t_s, "Disarmed by external command" + (" (forced in air)" if not kin.on_ground else ""))
+        return ACCEPTED
+
+    def takeoff(self, t_s: float, kin: Kinematics, alt_above_home_m: float | None) -> int:
+        """AUTO.TAKEOFF to alt_above_home_m (MIS_TAKEOFF_ALT when None), then Hold there."""
+        if self.crashed:
+            return self._refuse(t_s, DENIED, "Takeoff denied: vehicle crashed")
+        if not self.armed:
+            return self._refuse(t_s, DENIED, "Takeoff denied: disarmed")
+        alt_m = self._params["MIS_TAKEOFF_ALT"] if alt_above_home_m is None else alt_above_home_m
+        target = kin.pos_enu_m.copy()
+        target[2] = self._home_enu_m[2] + alt_m
+        self._switch(t_s, TAKEOFF, kin)
+        self._target_enu_m = target
+        log.info("take-off to %.2f m above home (z = %.2f m ENU)", alt_m, target[2])
+        return ACCEPTED
+
+    def land(self, t_s: float, kin: Kinematics) -> int:
+        """AUTO.LAND: descend at MPC_LAND_SPEED where we are; auto-disarm after touch-down."""
+        if self.crashed:
+            return self._refuse(t_s, DENIED, "Land denied: vehicle crashed")
+        self._switch(t_s, LAND, kin)
+        return ACCEPTED
+
+    def set_mode(self, t_s: float, kin: Kinematics, mode: Px4Mode) -> int:
+        """DO_SET_MODE with PX4's acceptance rules for the modes this vehicle flies."""
+        if mode == self.mode:
+            return ACCEPTED
+        if mode == TAKEOFF:
+            return self.takeoff(t_s, kin, None)
+        if mode == LAND:
+            return self.land(t_s, kin)
+        if mode not in SELECTABLE_MODES:
+            return self._refuse(t_s, DENIED, f"Mode {mode.name} not available in SITL")
+        if mode == OFFBOARD:
+            if not self.armed:
+                return self._refuse(t_s, DENIED, "Offboard denied: disarmed")
+            if not self._setpoint_fresh(t_s, OFFBOARD_ENTRY_MAX_SETPOINT_AGE_S):
+                return self._refuse(t_s, TEMPORARILY_REJECTED, "Offboard denied: no setpoints")
+        self._switch(t_s, mode, kin)
+        return ACCEPTED
+
+    def on_setpoint(self, setpoint: OffboardSetpoint) -> None:
+        """Latest offboard setpoint (its receipt time feeds the entry check and the failsafe)."""
+        self._setpoint = setpoint
+
+    def on_sticks(self, sticks: Sticks) -> None:
+        """Latest pilot sticks (position mode)."""
+        self._sticks = sticks
+
+    def crash(self, t_s: float, what: str) -> None:
+        """A collision: the vehicle stops where it is and disarms for good."""
+        if self.crashed:
+            return
+        self.crashed = True
+        self.armed = False
+        self._event(t_s, mavlink.MAV_SEVERITY_CRITICAL, f"collision: {what}")
+
+    # ---- per physics step -----------------------------------------------------------------
+
+    def update(self, t_s: float, kin: Kinematics) -> None:
+        """Land detection, auto-disarm, take-off completion and the offboard-loss failsafe."""
+        if kin.on_ground != self._on_ground:
+            self._on_ground = kin.on_ground
+            self._t_ground_s = t_s
+            if kin.on_ground and self.armed:
+                self._event(t_s, mavlink.MAV_SEVERITY_INFO, "Landing detected")
+        if not self.armed:
+            return
+        if not kin.on_ground:
+            self._airborne_since_arm = True
+        elif self._airborne_since_arm and t_s - self._t_ground_s >= self._params["COM_DISARM_LAND"]:
+            self._disarm(t_s, "Disarmed by landing")
+            return
+        elif not self._airborne_since_arm and t_s - self._t_armed_s >= self._params["COM_DISARM_PRFLT"]:
+            self._disarm(t_s, "Disarmed: no takeoff")
+            return
+        if self.mode == TAKEOFF and abs(kin.pos_enu_m[2] - self._target_enu_m[2]) < TAKEOFF_ACCEPTANCE_M:
+            target = self._target_enu_m
+            self._switch(t_s, HOLD, kin)
+            self._target_enu_m = target
+            self._event(t_s, mavlink.MAV_SEVERITY_INFO, "Takeoff complete, holding")
+        if self.mode == OFFBOARD and not self._setpoint_fresh(t_s, self._params["COM_OF_LOSS_T"]):
+            # PX4's default reaction is Position mode (COM_OBL_RC_ACT = 0); DESIGN asks for Hold,
+            # and Hold (AUTO.LOITER) is what this vehicle does.
+            self._switch(t_s, HOLD, kin)
+            self._event(t_s, mavlink.MAV_SEVERITY_WARNING, "Failsafe: offboard lost, Hold")
+
+    def velocity_command(self, t_s: float, kin: Kinematics) -> VelocityCommand:
+        """What the current mode asks of the velocity controller now."""
+        if self.mode == OFFBOARD and self._setpoint is not None:
+            return flight_tasks.follow_setpoint(kin, self._setpoint, self._target_yaw_enu_rad)
+        if self.mode == TAKEOFF:
+            return flight_tasks.climb_to(kin, self._target_enu_m, self._target_yaw_enu_rad, self._params["MPC_TKO_SPEED"])
+        if self.mode == LAND:
+            return flight_tasks.descend(kin, self._target_enu_m, self._target_yaw_enu_rad, self._params["MPC_LAND_SPEED"])
+        if self.mode == POSCTL and self._sticks is not None and t_s - self._sticks.t_rx_s <= STICK_TIMEOUT_S:
+            if not self._sticks.is_centred():
+                # Sticks fly the vehicle; the hold target follows so centring them holds here.
+                self._target_enu_m = flight_tasks.stopping_point(kin)
+                self._target_yaw_enu_rad = kin.yaw_enu_rad
+                return flight_tasks.fly_sticks(kin, self._sticks)
+        return flight_tasks.hold_position(kin, self._target_enu_m, self._target_yaw_enu_rad)
+
+    # ---- internals ------------------------------------------------------------------------
+
+    def _setpoint_fresh(self, t_s: float, max_age_s: float) -> bool:
+        return self._setpoint is not None and t_s - self._setpoint.t_rx_s <= max_age_s
+
+    def _switch(self, t_s: float, mode: Px4Mode, kin: Kinematics) -> None:
+        self._target_enu_m = flight_tasks.stopping_point(kin)
+        self._target_yaw_enu_rad = kin.yaw_enu_rad
+        if mode != self.mode:
+            log.info("mode %s -> %s", self.mode.name, mode.name)
+            self.mode = mode
+            self.mode_log.append((t_s, mode.name))
+
+    def _disarm(self, t_s: float, text: str) -> None:
+        self.armed = False
+        self._event(t_s, mavlink.MAV_SEVERITY_INFO, text)
+
+    def _refuse(self, t_s: float, result: int, text: str) -> int:
+        self._event(t_s, mavlink.MAV_SEVERITY_WARNING, text)
+        return result
+
+    def _event(self, t_s: float, severity: int, text: str) -> None:
+        log.info("event: %s", text)
+        self._events.append(Event(t_s, severity, text))

@@ -1,0 +1,174 @@
+"""The SITL vehicle: world + airframe + PX4-like autopilot over MAVLink + camera server, stepped
+in real time.
+
+Threads: the main thread runs the physics and MAVLink loop (one thread, so the autopilot needs no
+locks): it waits on the MAVLink socket until the next physics deadline, handles what arrived,
+then steps.  Deadlines advance by whole periods from a fixed origin (no drift); if the loop
+falls more than MAX_LAG_S behind it re-phases and logs the overrun.  The camera renders in its
+own thread from the latest pose, and the frame server sends from its own threads.
+"""
+
+from __future__ import annotations
+
+import logging
+import select
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from sim.camera import CameraModel
+from sim.world import make_worlds
+
+from .airframe import Airframe
+from .autopilot import Autopilot
+from .camera_feed import CameraFeed
+from .camera_server import FrameServer
+from .commander import Commander
+from .geodetic import GeodeticHome
+from .mavlink_endpoint import MavlinkEndpoint
+from .params import ParamTable
+from .records import Trace, episode_record, write_json_atomic
+from .streams import StreamScheduler
+from .telemetry import Telemetry
+
+log = logging.getLogger(__name__)
+
+MAX_LAG_S = 0.25
+
+
+@dataclass(frozen=True)
+class SitlConfig:
+    """One SITL vehicle: ports on 127.0.0.1, the world (curriculum level, seed), output files,
+    physics and camera rates (Hz)."""
+
+    mavlink_port: int
+    camera_port: int
+    level: int
+    seed: int
+    episode_json: Path
+    trace_json: Path
+    physics_hz: float = 100.0
+    camera_hz: float = 15.0
+
+    def validate(self) -> None:
+        """Raise ValueError naming the bad option."""
+        if self.level < 0:
+            raise ValueError(f"--level {self.level} must be >= 0")
+        if not 10.0 <= self.physics_hz <= 1000.0:
+            raise ValueError(f"--physics-hz {self.physics_hz} must be in [10, 1000]")
+        if not 0.0 < self.camera_hz <= 60.0:
+            raise ValueError(f"--camera-hz {self.camera_hz} must be in (0, 60]")
+        for name, port in (("--mavlink-port", self.mavlink_port), ("--camera-port", self.camera_port)):
+            if not 0 < port < 65536:
+                raise ValueError(f"{name} {port} must be a port number in 1..65535")
+
+
+class SitlVehicle:
+    """Builds the world and opens both ports in ``__init__``; serves and flies in :meth:`run`."""
+
+    def __init__(self, config: SitlConfig) -> None:
+        config.validate()
+        self._config = config
+        self._t_boot_ns = time.monotonic_ns()
+        t_s = self._t_boot_ns * 1e-9
+        self._world = make_worlds(config.level, config.seed, 1)
+        start = self._world.start_m[0].double().numpy()
+        # Facing +x, the goal side of the room, as in training.
+        self._airframe = Airframe(self._world, start[:2], yaw_enu_rad=0.0)
+        self._home_enu_m = self._airframe.home_enu_m
+        self._kin = self._airframe.kinematics(self._t_boot_ns)
+        geo = GeodeticHome()
+        params = ParamTable(takeoff_alt_m=float(start[2] - self._home_enu_m[2]))
+        self._commander = Commander(params, self._home_enu_m, self._kin, t_s)
+        self._server = FrameServer(config.camera_port)
+        self._endpoint = MavlinkEndpoint(config.mavlink_port)
+        self._autopilot = Autopilot(
+            self._endpoint,
+            self._commander,
+            params,
+            Telemetry(self._home_enu_m, geo, self._t_boot_ns),
+            StreamScheduler(t_s, max_rate_hz=config.physics_hz),
+            geo,
+            self._t_boot_ns,
+        )
+        self._trace = Trace()
+        # The render thread reads self._kin: it is replaced each tick, never mutated, so the
+        # reference it gets is always one consistent state.
+        self._feed = CameraFeed(self._world, CameraModel(), lambda: self._kin, self._server.publish, config.camera_hz)
+        self.overruns = 0
+
+    def run(self, stop: threading.Event) -> None:
+        """Serve until ``stop`` is set, then close everything and write the trace."""
+        try:
+            self._feed.start()
+            self._server.start()
+            self._write_episode()
+            self._loop(stop)
+        finally:
+            self._feed.stop()
+            self._server.close()
+            self._endpoint.close()
+            self._write_trace()
+
+    def _write_episode(self) -> None:
+        c = self._config
+        record = episode_record(
+            self._world, self._home_enu_m, c.level, c.seed, c.mavlink_port, self._server.port, self._endpoint.local_port
+        )
+        write_json_atomic(c.episode_json, record)
+        log.info("episode written to %s: goal %s m from home", c.episode_json, [round(v, 2) for v in record["goal_rel_home_enu_m"]])
+
+    def _write_trace(self) -> None:
+        record = self._trace.to_record(self._commander.mode_log, self._server.served())
+        write_json_atomic(self._config.trace_json, record)
+        log.info(
+            "trace written to %s: %d positions, %d frames served, collision %s; %d physics overruns, "
+            "%d camera deadlines skipped",
+            self._config.trace_json, len(record["t_s"]), record["frames_served"], record["collision"], self.overruns,
+            self._feed.skipped_deadlines,
+        )  # fmt: skip
+
+    def _loop(self, stop: threading.Event) -> None:
+        period_s = 1.0 / self._config.physics_hz
+        next_s = time.monotonic()
+        while not stop.is_set():
+            now = time.monotonic()
+            if now < next_s:
+                readable, _, _ = select.select([self._endpoint], [], [], next_s - now)
+                if readable:
+                    self._receive()
+                continue
+            self._tick(period_s)
+            next_s += period_s
+            lag_s = time.monotonic() - next_s
+            if lag_s > MAX_LAG_S:
+                self.overruns += 1
+                log.warning("physics loop %.0f ms behind real time; re-phasing (overrun %d)", lag_s * 1e3, self.overruns)
+                next_s = time.monotonic()
+
+    def _receive(self) -> None:
+        t_s = time.monotonic()
+        for msg in self._endpoint.receive():
+            self._autopilot.handle(msg, self._kin, t_s)
+
+    def _tick(self, dt_s: float) -> None:
+        t_ns = time.monotonic_ns()
+        t_s = t_ns * 1e-9
+        self._commander.update(t_s, self._kin)
+        command = self._commander.velocity_command(t_s, self._kin) if self._commander.armed else None
+        hit = self._airframe.step(command, dt_s)
+        self._kin = self._airframe.kinematics(t_ns)
+        if hit is not None:
+            self._commander.crash(t_s, hit)
+            self._trace.record_collision(t_s, self._kin.pos_enu_m, hit)
+        self._trace.record_events(self._autopilot.publish(self._kin, t_s))
+        self._trace.sample(t_s, self._kin.pos_enu_m)
+
+
+def limit_torch_threads() -> None:
+    """One intra-op thread: the vehicle shares two cores with the runtime, and a 212x120 render
+    or a batch-1 dynamics step gains nothing from more."""
+    torch.set_num_threads(1)

@@ -1,0 +1,34 @@
+"""``python -m sim.sitl`` argument handling (the process itself is exercised end to end elsewhere)."""
+
+from pathlib import Path
+
+import pytest
+
+from sim.sitl.__main__ import parse_args
+
+BASE = ["--mavlink-port", "14540", "--camera-port", "5600", "--level", "2", "--seed", "7",
+        "--episode-json", "ep.json", "--trace", "trace.json"]  # fmt: skip
+
+
+def test_defaults():
+    config = parse_args(BASE)
+    assert (config.mavlink_port, config.camera_port, config.level, config.seed) == (14540, 5600, 2, 7)
+    assert (config.episode_json, config.trace_json) == (Path("ep.json"), Path("trace.json"))
+    assert (config.physics_hz, config.camera_hz) == (100.0, 15.0)
+
+
+@pytest.mark.parametrize(
+    "extra, named",
+    [(["--physics-hz", "5"], "--physics-hz"), (["--camera-hz", "0"], "--camera-hz"), (["--level", "-1"], "--level"),
+     (["--mavlink-port", "70000"], "--mavlink-port")],
+)  # fmt: skip
+def test_bad_values_are_named(extra, named, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        parse_args(BASE + extra)
+    assert exit_info.value.code == 2 and named in capsys.readouterr().err
+
+
+def test_missing_option(capsys):
+    with pytest.raises(SystemExit):
+        parse_args(BASE[:-2])
+    assert "--trace" in capsys.readouterr().err

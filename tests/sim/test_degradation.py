@@ -9,6 +9,7 @@ from sim.degradation import (
     S1_COVERAGE_LEVELS,
     S2,
     PatchScheme,
+    ProjectorOffModel,
     corrupt_depth,
     corrupt_with_scheme,
     evaluation_scheme,
@@ -77,3 +78,35 @@ def test_corrupt_sets_invalid_zero_and_keeps_the_rest():
 def test_bad_scheme_is_named():
     with pytest.raises(ValueError, match="patch sides"):
         patch_masks(torch.full((1,), 0.2), PatchScheme(0, 10, 0.2, 0.2), _gen())
+
+
+def _scene(gray_std: float, gray_mean: float = 120.0, depth_m: float = 3.0, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    gray = (gray_mean + gray_std * torch.randn(2, 60, 80, generator=g)).clamp(0, 255).to(torch.uint8)
+    return torch.full((2, 60, 80), depth_m), gray
+
+
+def test_projector_off_loses_depth_by_its_cues():
+    model = ProjectorOffModel()
+    fx = 100.0
+    textured = model.apply(*_scene(20.0), fx, _gen())[1].mean()
+    flat = model.apply(*_scene(0.0), fx, _gen())[1].mean()
+    dark = model.apply(*_scene(20.0, gray_mean=5.0), fx, _gen())[1].mean()
+    far = model.apply(*_scene(20.0, depth_m=9.5), fx, _gen())[1].mean()
+    assert textured < 0.1 and flat > 0.9 and dark > 0.5 and far > 0.9
+    # A floor seen at a grazing angle: depth changes fast across the image.
+    depth = torch.linspace(1.0, 9.0, 60).view(1, 60, 1).expand(2, 60, 80).contiguous()
+    grazing = model.apply(depth, _scene(20.0)[1], fx, _gen())[1].mean()
+    assert grazing > textured
+
+
+def test_projector_off_output_and_seeding():
+    depth, gray = _scene(2.0)
+    out_a, frac_a = ProjectorOffModel().apply(depth, gray, 100.0, _gen(5))
+    out_b, frac_b = ProjectorOffModel().apply(depth, gray, 100.0, _gen(5))
+    assert torch.equal(out_a, out_b) and torch.equal(frac_a, frac_b)
+    lost = out_a == 0
+    assert torch.allclose(frac_a, lost.float().mean(dim=(1, 2)))
+    assert torch.equal(out_a[~lost], depth[~lost])
+    harsher = ProjectorOffModel(severity=2.0).apply(depth, gray, 100.0, _gen(5))[1]
+    assert torch.all(harsher >= frac_a)

@@ -10,7 +10,9 @@ from inside a box, that box is invisible (only faces the ray enters from outside
 
 ``render_reference`` is the plain ray caster: loops over envs, room faces and boxes, float64
 geometry, and slab-tests a box only against the rays through its bounding sphere.
-``render`` is the batched path (envs x rays x boxes at once, float32), tested equal to it.
+``render`` is the fast path, tested equal to it: on the CPU a numba kernel that slab-tests each
+box only inside its projected screen rectangle (:mod:`sim.render_cpu`); on other devices
+``render_torch``, batched over envs x rays x boxes at once in float32 torch ops.
 """
 
 from __future__ import annotations
@@ -36,6 +38,13 @@ AMBIENT_FRACTION = 0.4
 _CULL_SLACK_M = 1e-6
 # Bound on 1 / (ray direction component) in the batched slab test.
 _MAX_INVERSE_DIRECTION = 1e12
+
+# How closely the fast paths match render_reference: relative depth error and gray difference
+# (levels) allowed on all but MAX_MISMATCH_FRACTION of the pixels (a ray grazing a box edge may hit
+# in one and miss in the other).
+DEPTH_REL_TOLERANCE = 1e-4
+GRAY_TOLERANCE_LEVELS = 1
+MAX_MISMATCH_FRACTION = 1e-3
 
 
 @dataclass
@@ -177,15 +186,32 @@ def render_reference(
 
 
 def render(
+    world: WorldBatch, cam_pos_enu_m: Tensor, cam_quat_enu_flu: Tensor, camera: CameraModel
+) -> RenderOutput:
+    """Render depth and gray for camera poses cam_pos_enu_m [B, 3] (m), cam_quat_enu_flu [B, 4]
+    (camera frame C -> world ENU) on the world's device; equal to :func:`render_reference` within
+    DEPTH_REL_TOLERANCE / GRAY_TOLERANCE_LEVELS.  On the CPU the numba kernel of
+    :mod:`sim.render_cpu` (boxes culled to their screen rectangles, as many threads as torch
+    uses), elsewhere :func:`render_torch`."""
+    if world.device.type == "cpu":
+        # Imported here: sim.render_cpu imports this module (and numba, which the torch path
+        # does not need).
+        from .render_cpu import render_cpu
+
+        return render_cpu(world, cam_pos_enu_m, cam_quat_enu_flu, camera)
+    return render_torch(world, cam_pos_enu_m, cam_quat_enu_flu, camera)
+
+
+def render_torch(
     world: WorldBatch,
     cam_pos_enu_m: Tensor,
     cam_quat_enu_flu: Tensor,
     camera: CameraModel,
     max_chunk_elements: int = 1 << 24,
 ) -> RenderOutput:
-    """Same as :func:`render_reference`, batched over envs x rays x boxes in float32 on the
-    world's device.  Envs are processed in chunks of at most ``max_chunk_elements`` ray-box pairs
-    to bound memory."""
+    """Same as :func:`render_reference`, batched over envs x rays x boxes in float32 torch ops on
+    the world's device (the CUDA path of :func:`render`).  Envs are processed in chunks of at most
+    ``max_chunk_elements`` ray-box pairs to bound memory."""
     rays = _world_rays(cam_quat_enu_flu, camera, torch.float32)
     pairs_per_env = rays.shape[1] * max(world.num_slots, 1)
     chunk = max(1, max_chunk_elements // pairs_per_env)

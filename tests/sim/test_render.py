@@ -8,17 +8,22 @@ import pytest
 import torch
 
 from sim.camera import CameraModel, camera_pose, sample_mount_jitter
-from sim.render import RenderOutput, render, render_reference
+from sim.render import (
+    DEPTH_REL_TOLERANCE,
+    GRAY_TOLERANCE_LEVELS,
+    MAX_MISMATCH_FRACTION,
+    RenderOutput,
+    render,
+    render_reference,
+    render_torch,
+)
 from sim.rotations import euler_from_quat, quat_from_euler, quat_from_yaw, quat_rotate
 from sim.world import WorldBatch, make_worlds
 
 CAMERA = CameraModel()
-RENDERERS = [render_reference, render]
-# Reference (float64) vs batched (float32): relative depth error and gray difference allowed on all
-# but this fraction of pixels (a ray grazing a box edge may hit in one and miss in the other).
-DEPTH_REL_TOL = 1e-4
-GRAY_TOL = 1
-MAX_MISMATCH_FRACTION = 1e-3
+# render is the numba kernel on the CPU; render_torch (the CUDA path) is tested here on the CPU.
+FAST_RENDERERS = [render, render_torch]
+RENDERERS = [render_reference, *FAST_RENDERERS]
 
 
 def room_world(boxes: list[tuple[tuple[float, float, float], tuple[float, float, float], float, bool]] = (),
@@ -56,9 +61,9 @@ def assert_match(ref: RenderOutput, fast: RenderOutput) -> None:
     assert fast.depth_m.dtype == torch.float32 and fast.gray_u8.dtype == torch.uint8
     assert fast.depth_m.shape == ref.depth_m.shape == fast.gray_u8.shape
     rel = (fast.depth_m.double() - ref.depth_m.double()).abs() / ref.depth_m.double()
-    assert float((rel > DEPTH_REL_TOL).double().mean()) <= MAX_MISMATCH_FRACTION, float(rel.max())
+    assert float((rel > DEPTH_REL_TOLERANCE).double().mean()) <= MAX_MISMATCH_FRACTION, float(rel.max())
     gray_diff = (fast.gray_u8.int() - ref.gray_u8.int()).abs()
-    assert float((gray_diff > GRAY_TOL).double().mean()) <= MAX_MISMATCH_FRACTION
+    assert float((gray_diff > GRAY_TOLERANCE_LEVELS).double().mean()) <= MAX_MISMATCH_FRACTION
 
 
 # Camera model.
@@ -161,10 +166,11 @@ def test_padding_slots_and_boxes_around_the_camera_are_invisible(renderer) -> No
     assert torch.allclose(around.depth_m, empty.depth_m, rtol=1e-6)
 
 
-# Reference == batched.
+# Reference == fast paths.
 
 
 def random_scene(levels: list[int], seed: int):
+    """Worlds at the given levels; cameras anywhere in the room, tilted up to 0.6 rad, any yaw."""
     world = make_worlds(levels, seed=seed)
     gen = torch.Generator().manual_seed(seed)
     batch = world.batch_size
@@ -173,24 +179,84 @@ def random_scene(levels: list[int], seed: int):
     return world, pos, quat_from_euler(*angles.unbind(-1))
 
 
-def test_reference_equals_batched_on_cpu() -> None:
-    world, pos, quat = random_scene([0, 3, 8, 14, 20, 26], seed=17)
-    assert_match(render_reference(world, pos, quat, CAMERA), render(world, pos, quat, CAMERA))
+def close_to_box_scene(levels: list[int], seed: int):
+    """Worlds at the given levels; each camera within 0.3 m of one of its env's boxes (sometimes
+    inside it, or beside it with the box across the camera plane), looking roughly at its centre
+    (within 0.7 rad), rolled by any angle."""
+    world = make_worlds(levels, seed=seed)
+    gen = torch.Generator().manual_seed(seed)
+    batch = world.batch_size
+    slot = (torch.rand(batch, generator=gen) * world.obstacle_count()).long()
+    rows = torch.arange(batch)
+    half = world.box_half_extent_m[rows, slot]
+    offset_box = (torch.rand(batch, 3, generator=gen) * 2 - 1) * (half + 0.3)
+    offset_enu = quat_rotate(quat_from_yaw(world.box_yaw_rad[rows, slot]), offset_box)
+    pos = (world.box_center_m[rows, slot] + offset_enu).clamp(min=torch.tensor(0.01), max=world.room_size_m - 0.01)
+    to_box = -offset_enu
+    yaw = torch.atan2(to_box[:, 1], to_box[:, 0])
+    pitch = -torch.atan2(to_box[:, 2], to_box[:, :2].norm(dim=-1))  # positive pitch is nose down
+    jitter = (torch.rand(batch, 3, generator=gen) * 2 - 1) * torch.tensor([math.pi, 0.7, 0.7])
+    return world, pos, quat_from_euler(jitter[:, 0], pitch + jitter[:, 1], yaw + jitter[:, 2])
 
 
-def test_chunked_batched_render_equals_one_chunk() -> None:
+SCENES = {
+    "random poses": lambda: random_scene([0, 3, 8, 14, 20, 26], seed=17),
+    "close to boxes": lambda: close_to_box_scene([1, 5, 12, 26, 26, 33, 40, 8], seed=5),
+}
+
+
+@pytest.fixture(scope="module", params=list(SCENES))
+def scene_and_reference(request):
+    """(world, cam_pos_enu_m, cam_quat_enu_flu, reference render), rendered once per module."""
+    world, pos, quat = SCENES[request.param]()
+    return world, pos, quat, render_reference(world, pos, quat, CAMERA)
+
+
+def test_close_to_box_scene_sees_boxes_up_close() -> None:
+    world, pos, quat = SCENES["close to boxes"]()
+    nearest_m = render(world, pos, quat, CAMERA).depth_m.amin(dim=(1, 2))
+    assert int((nearest_m < 0.5).sum()) >= 6, nearest_m
+
+
+@pytest.mark.parametrize("renderer", FAST_RENDERERS)
+def test_fast_equals_reference_on_cpu(renderer, scene_and_reference) -> None:
+    world, pos, quat, reference = scene_and_reference
+    assert_match(reference, renderer(world, pos, quat, CAMERA))
+
+
+@pytest.mark.parametrize("renderer", FAST_RENDERERS)
+def test_fast_equals_reference_for_another_camera(renderer) -> None:
+    camera = CameraModel(width_px=64, height_px=36, hfov_rad=1.2)
+    for world, pos, quat in (scene() for scene in SCENES.values()):
+        assert_match(render_reference(world, pos, quat, camera), renderer(world, pos, quat, camera))
+
+
+def test_cpu_render_does_not_depend_on_the_thread_count() -> None:
+    world, pos, quat = random_scene([26] * 4, seed=8)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = render(world, pos, quat, CAMERA)
+        torch.set_num_threads(2)
+        two = render(world, pos, quat, CAMERA)
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(one.depth_m, two.depth_m) and torch.equal(one.gray_u8, two.gray_u8)
+
+
+def test_chunked_torch_render_equals_one_chunk() -> None:
     world, pos, quat = random_scene([2, 9, 5], seed=4)
-    whole = render(world, pos, quat, CAMERA)
-    chunked = render(world, pos, quat, CAMERA, max_chunk_elements=1)
+    whole = render_torch(world, pos, quat, CAMERA)
+    chunked = render_torch(world, pos, quat, CAMERA, max_chunk_elements=1)
     assert torch.equal(whole.depth_m, chunked.depth_m) and torch.equal(whole.gray_u8, chunked.gray_u8)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_batched_on_cuda_equals_reference_on_cpu() -> None:
-    world, pos, quat = random_scene([0, 5, 12, 26], seed=23)
+def test_fast_on_cuda_equals_reference_on_cpu(scene_and_reference) -> None:
+    world, pos, quat, reference = scene_and_reference
     on_gpu = render(world.to("cuda"), pos.cuda(), quat.cuda(), CAMERA)
     assert on_gpu.depth_m.device.type == "cuda"
-    assert_match(render_reference(world, pos, quat, CAMERA), RenderOutput(on_gpu.depth_m.cpu(), on_gpu.gray_u8.cpu()))
+    assert_match(reference, RenderOutput(on_gpu.depth_m.cpu(), on_gpu.gray_u8.cpu()))
 
 
 # Texture.

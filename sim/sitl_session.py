@@ -5,6 +5,13 @@ The SITL vehicle (``python -m sim.sitl``) owns ground truth: world, trajectory, 
 invalid-depth fraction of every served frame.  The runtime (``python -m runtime.sitl_flight``)
 owns what it did: outcome as it saw it, step timing, watchdog trips, MCAP log.  A collision in
 the ground truth overrides the runtime's view (a crash is a crash, whatever the runtime thinks).
+
+Fault injection (``--inject KIND@SECONDS``, ``runtime.faults``): each fault goes to the process
+where it happens (vehicle or runtime); ``runtime-kill`` is done here, SIGKILL to the runtime's
+PID SECONDS after the vehicle entered OFFBOARD (read from the vehicle's live status file).  When
+a faulted flight does not end in a landing, the vehicle runs FAULT_OBSERVE_S longer, so ground
+truth covers the response even when the runtime stopped early (pilot takeover, kill, lost link);
+the summary gets a ``faults`` list measured on ground truth (:func:`fault_records`).
 """
 
 from __future__ import annotations
@@ -24,7 +31,9 @@ from pathlib import Path
 import numpy as np
 
 from runtime.contract.constants import GOAL_REACHED_RADIUS_M
+from runtime.faults import FaultKind, FaultSite, Injection, InjectionError, parse_injection
 
+from .fault_report import fault_records, vehicle_failsafe_trip
 from .plot import plot_top_view
 
 log = logging.getLogger(__name__)
@@ -34,6 +43,10 @@ VEHICLE_READY_TIMEOUT_S = 60.0
 # Connect + health + arm + take-off + land around the offboard flight itself.
 RUNTIME_OVERHEAD_S = 90.0
 STOP_TIMEOUT_S = 10.0
+POLL_S = 0.02
+# After a faulted flight that did not end in a landing, keep the vehicle running this long after
+# the runtime exited (s).
+FAULT_OBSERVE_S = 2.0
 
 
 class SitlError(RuntimeError):
@@ -47,6 +60,16 @@ class SitlRequest:
     seed: int
     timeout_s: float
     out_dir: Path
+    injections: tuple[Injection, ...] = ()
+
+    def injections_at(self, site: FaultSite) -> list[str]:
+        """``--inject`` arguments for the process at ``site``."""
+        return [arg for i in self.injections if i.site == site for arg in ("--inject", str(i))]
+
+    @property
+    def kill_at_s(self) -> float | None:
+        """When to SIGKILL the runtime (s after the vehicle's OFFBOARD entry), or None."""
+        return next((i.at_s for i in self.injections if i.kind == FaultKind.RUNTIME_KILL), None)
 
 
 def free_port(kind: int) -> int:
@@ -110,16 +133,19 @@ def run_sitl(request: SitlRequest) -> dict:
     run_dir = request.out_dir / f"level{request.level}_seed{request.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
     run_dir.mkdir(parents=True, exist_ok=True)
     episode_path, trace_path, summary_path = run_dir / "episode.json", run_dir / "trace.json", run_dir / "runtime_summary.json"
+    status_path = run_dir / "vehicle_status.json"
     sim_log, runtime_log = run_dir / "sim.log", run_dir / "runtime.log"
     mavlink_port, camera_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
 
     t_launch = time.monotonic()
+    t_kill_s = None
     with open(sim_log, "w") as sim_out:
         vehicle = subprocess.Popen(
             [sys.executable, "-m", "sim.sitl", "--mavlink-port", str(mavlink_port), "--camera-port", str(camera_port),
              "--level", str(request.level), "--seed", str(request.seed),
-             "--episode-json", str(episode_path), "--trace", str(trace_path)],
+             "--episode-json", str(episode_path), "--trace", str(trace_path), "--status-json", str(status_path),
+             *request.injections_at(FaultSite.VEHICLE)],
             stdout=sim_out, stderr=subprocess.STDOUT, env=env,
         )  # fmt: skip
     runtime = None
@@ -133,31 +159,75 @@ def run_sitl(request: SitlRequest) -> dict:
                  "--camera-port", str(camera_port), "--model", str(request.model_path),
                  "--goal-rel-home", ",".join(f"{v:.4f}" for v in episode["goal_rel_home_enu_m"]),
                  "--takeoff-alt-m", f"{episode['takeoff_alt_m']:.3f}", "--timeout-s", str(request.timeout_s),
-                 "--log-dir", str(run_dir), "--summary", str(summary_path)],
+                 "--log-dir", str(run_dir), "--summary", str(summary_path), *request.injections_at(FaultSite.RUNTIME)],
                 stdout=runtime_out, stderr=subprocess.STDOUT, env=env,
             )  # fmt: skip
         log.info("runtime started (pid %d); flying", runtime.pid)
-        try:
-            runtime.wait(timeout=request.timeout_s + RUNTIME_OVERHEAD_S)
-        except subprocess.TimeoutExpired:
-            log.error("runtime did not finish within %.0f s; stopping it", request.timeout_s + RUNTIME_OVERHEAD_S)
+        t_kill_s = _wait_runtime(runtime, request, status_path)
+        if request.injections and [mode for _, mode in _vehicle_mode_log(status_path)][-1:] != ["LAND"]:
+            time.sleep(FAULT_OBSERVE_S)  # still flying: ground truth of the response, whatever the runtime did
     finally:
         if runtime is not None:
             _stop(runtime, "runtime")
         _stop(vehicle, "SITL vehicle")
 
-    if not summary_path.exists():
-        raise SitlError(f"the runtime wrote no summary (exit code {runtime.returncode if runtime else None}); "
-                        f"its log ({runtime_log}):\n{_tail(runtime_log)}")  # fmt: skip
     if not trace_path.exists():
         raise SitlError(f"the SITL vehicle wrote no trace; its log ({sim_log}):\n{_tail(sim_log)}")
-    flight = json.loads(summary_path.read_text())
+    if t_kill_s is not None:
+        # Killed: the runtime could write no summary; its MCAP log is cut short but readable.
+        log_path = next(run_dir.glob("*.mcap"), None)
+        flight = {"outcome": "aborted", "abort_reason": "runtime_killed", "log": log_path and str(log_path), "watchdog_trips": []}
+    elif summary_path.exists():
+        flight = json.loads(summary_path.read_text())
+    else:
+        raise SitlError(f"the runtime wrote no summary (exit code {runtime.returncode if runtime else None}); "
+                        f"its log ({runtime_log}):\n{_tail(runtime_log)}")  # fmt: skip
     trace = json.loads(trace_path.read_text())
-    return merge_summary(request, episode, flight, trace, run_dir, time.monotonic() - t_launch)
+    return merge_summary(request, episode, flight, trace, run_dir, time.monotonic() - t_launch, t_kill_s)
 
 
-def merge_summary(request: SitlRequest, episode: dict, flight: dict, trace: dict, run_dir: Path, wall_s: float) -> dict:
-    """One summary from the runtime's view and the vehicle's ground truth; writes the plot."""
+def _wait_runtime(runtime: subprocess.Popen, request: SitlRequest, status_path: Path) -> float | None:
+    """Wait for the runtime to finish (stopping it after the time limit); with a runtime-kill
+    injection, SIGKILL it on time.  Returns the kill time (time.monotonic s) or None."""
+    limit_s = request.timeout_s + RUNTIME_OVERHEAD_S
+    deadline = time.monotonic() + limit_s
+    kill_at_s = request.kill_at_s
+    while runtime.poll() is None:
+        if time.monotonic() > deadline:
+            log.error("runtime did not finish within %.0f s; stopping it", limit_s)
+            return None
+        t_offboard_s = _vehicle_offboard_entry(status_path) if kill_at_s is not None else None
+        if t_offboard_s is not None and time.monotonic() >= t_offboard_s + kill_at_s:
+            runtime.kill()  # SIGKILL by PID: no handler runs, MAVSDK's setpoint re-sending dies with it
+            t_kill_s = time.monotonic()
+            runtime.wait()
+            log.warning("runtime (pid %d) killed %.2f s after the vehicle entered OFFBOARD", runtime.pid, t_kill_s - t_offboard_s)
+            return t_kill_s
+        time.sleep(POLL_S)
+    return None
+
+
+def _vehicle_mode_log(status_path: Path) -> list[tuple[float, str]]:
+    """The vehicle's mode log so far (time.monotonic s, mode) from its live status file."""
+    try:
+        return [(t, mode) for t, mode in json.loads(status_path.read_text())["mode_log"]]
+    except (OSError, json.JSONDecodeError, KeyError):
+        return []  # not written yet
+
+
+def _vehicle_offboard_entry(status_path: Path) -> float | None:
+    """The vehicle's first OFFBOARD entry (time.monotonic s), or None."""
+    return next((t for t, mode in _vehicle_mode_log(status_path) if mode == "OFFBOARD"), None)
+
+
+def merge_summary(
+    request: SitlRequest, episode: dict, flight: dict, trace: dict, run_dir: Path, wall_s: float, t_kill_s: float | None = None
+) -> dict:
+    """One summary from the runtime's view and the vehicle's ground truth; writes the plot.
+
+    With injections it adds ``faults`` (:func:`sim.fault_report.fault_records`); a killed
+    runtime's trip, the vehicle's own failsafe Hold, is added to ``watchdog_trips`` from the trace.
+    """
     positions = np.asarray(trace["pos_enu_m"], dtype=np.float64).reshape(-1, 3)
     t_s = np.asarray(trace["t_s"], dtype=np.float64)
     offboard = [t for t, mode in trace["mode_log"] if mode == "OFFBOARD"]
@@ -180,8 +250,13 @@ def merge_summary(request: SitlRequest, episode: dict, flight: dict, trace: dict
         title=f"{outcome}  level {request.level}  seed {request.seed}  {Path(request.model_path).name}",
         collision_enu_m=collision["pos_enu_m"] if collision else None,
     )  # fmt: skip
+    trips = list(flight.get("watchdog_trips", []))
+    if t_kill_s is not None:
+        failsafe, _ = vehicle_failsafe_trip([(t, m) for t, m in trace["mode_log"]], t_kill_s)
+        trips += [failsafe] if failsafe is not None else []
     summary = {
         "outcome": outcome,
+        "abort_reason": flight.get("abort_reason"),
         "time_s": flight.get("time_s"),
         "path_m": round(_path_length_m(flown), 3),
         "final_distance_m": round(final_dist_m, 3),
@@ -190,7 +265,7 @@ def merge_summary(request: SitlRequest, episode: dict, flight: dict, trace: dict
         "missed_deadlines": flight.get("missed_deadlines"),
         "step_ms": flight.get("step_ms"),
         "stage_ms": flight.get("stage_ms"),
-        "watchdog_trips": flight.get("watchdog_trips", []),
+        "watchdog_trips": trips,
         "t_launch_to_offboard_s": flight.get("t_launch_to_offboard_s"),
         "wall_s": round(wall_s, 2),
         "level": request.level,
@@ -202,13 +277,20 @@ def merge_summary(request: SitlRequest, episode: dict, flight: dict, trace: dict
     }
     if collision:
         summary["collision"] = collision
+    if request.injections:
+        summary["faults"] = fault_records(request.injections, trace, flight, t_kill_s)
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
 
 
 def run_sitl_cli(args: argparse.Namespace) -> int:
     """Entry of ``cmnav sitl``: exit 0 on success, 1 on crash/timeout/aborted, 2 if it could not run."""
-    request = SitlRequest(Path(args.model), args.level, args.seed, args.timeout, Path(args.out))
+    try:
+        injections = tuple(parse_injection(text) for text in args.inject)
+    except InjectionError as err:
+        print(f"cmnav sitl: {err}", file=sys.stderr)
+        return 2
+    request = SitlRequest(Path(args.model), args.level, args.seed, args.timeout, Path(args.out), injections)
     try:
         summary = run_sitl(request)
     except SitlError as err:
@@ -220,6 +302,10 @@ def run_sitl_cli(args: argparse.Namespace) -> int:
         f"{(summary['step_ms'] or {}).get('p50')}/{(summary['step_ms'] or {}).get('p99')} ms, "
         f"watchdog trips {len(summary['watchdog_trips'])}\nlog {summary['log']}\nplot {summary['plot']}"
     )
+    for fault in summary.get("faults", []):
+        print(f"fault {fault['kind']}@{fault['at_s']:g}: trip {fault['cause']} detected in {fault['detect_ms']} ms, "
+              f"{fault['trip_after_inject_ms']} ms after injection; {fault['response']}; stopped "
+              f"{fault['stopped_within_s']} s after injection; Hold after {fault['hold_entered_s']} s")  # fmt: skip
     if args.json:
         print(json.dumps(summary))
     return 0 if summary["outcome"] == "success" else 1

@@ -9,6 +9,8 @@ import sys
 import threading
 from pathlib import Path
 
+from runtime.faults import FaultSite, parse_injection
+
 from .camera_server import CameraPortError
 from .vehicle import SitlConfig, SitlVehicle, limit_torch_threads
 
@@ -30,14 +32,19 @@ def parse_args(argv: list[str] | None = None) -> SitlConfig:
     parser.add_argument("--trace", type=Path, required=True, help="where to write the ground-truth trace at exit")
     parser.add_argument("--physics-hz", type=float, default=100.0, help="physics and MAVLink loop rate (default 100)")
     parser.add_argument("--camera-hz", type=float, default=15.0, help="camera frame rate (default 15)")
+    parser.add_argument("--inject", action="append", default=[], metavar="KIND@SECONDS",
+                        help="inject a fault SECONDS after this vehicle first enters OFFBOARD (repeatable; kinds: "
+                        "camera-stall, camera-garbage, camera-blackout, telemetry-loss, pilot-takeover, offboard-refused@0)")  # fmt: skip
+    parser.add_argument("--status-json", type=Path, help="keep the mode log here, rewritten at every mode change")
     args = parser.parse_args(argv)
-    config = SitlConfig(
-        args.mavlink_port, args.camera_port, args.level, args.seed, args.episode_json, args.trace,
-        args.physics_hz, args.camera_hz,
-    )  # fmt: skip
     try:
+        injections = tuple(parse_injection(text, [FaultSite.VEHICLE]) for text in args.inject)
+        config = SitlConfig(
+            args.mavlink_port, args.camera_port, args.level, args.seed, args.episode_json, args.trace,
+            args.physics_hz, args.camera_hz, injections, args.status_json,
+        )  # fmt: skip
         config.validate()
-    except ValueError as err:
+    except ValueError as err:  # InjectionError is one
         parser.error(str(err))
     return config
 

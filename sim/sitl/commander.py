@@ -10,6 +10,7 @@ notable events are queued as (severity, text) for STATUSTEXT and the trace.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,8 +50,18 @@ class Event:
 class Commander:
     """Arming state, flight mode and the targets of the current mode (see the module doc)."""
 
-    def __init__(self, params: ParamTable, home_enu_m: np.ndarray, kin: Kinematics, t_s: float) -> None:
+    def __init__(
+        self,
+        params: ParamTable,
+        home_enu_m: np.ndarray,
+        kin: Kinematics,
+        t_s: float,
+        offboard_allowed: Callable[[float], bool] | None = None,
+    ) -> None:
+        """``offboard_allowed(t_s)``, when given, is asked before OFFBOARD is entered (False:
+        DENIED, as PX4 refuses a mode that is not available; the fault injection uses it)."""
         self._params = params
+        self._offboard_allowed = offboard_allowed
         self._home_enu_m = np.asarray(home_enu_m, dtype=np.float64)
         self.armed = False
         self.crashed = False
@@ -61,7 +72,10 @@ class Commander:
         self._events: list[Event] = []
         self._setpoint: OffboardSetpoint | None = None
         self._sticks: Sticks | None = None
+        # Take-off and landing fly to _target_enu_m; Hold, Position mode and an offboard without
+        # setpoints hold through _brake (which brakes to a stop first when engaged in flight).
         self._target_enu_m = kin.pos_enu_m.copy()
+        self._brake = flight_tasks.Brake(kin.pos_enu_m)
         self._target_yaw_enu_rad = kin.yaw_enu_rad
         self._t_armed_s = t_s
         self._airborne_since_arm = False
@@ -151,12 +165,22 @@ class Commander:
         if mode not in SELECTABLE_MODES:
             return self._refuse(t_s, DENIED, f"Mode {mode.name} not available in SITL")
         if mode == OFFBOARD:
+            if self._offboard_allowed is not None and not self._offboard_allowed(t_s):
+                return self._refuse(t_s, DENIED, "Offboard denied: mode not available")
             if not self.armed:
                 return self._refuse(t_s, DENIED, "Offboard denied: disarmed")
             if not self._setpoint_fresh(t_s, OFFBOARD_ENTRY_MAX_SETPOINT_AGE_S):
                 return self._refuse(t_s, TEMPORARILY_REJECTED, "Offboard denied: no setpoints")
         self._switch(t_s, mode, kin)
         return ACCEPTED
+
+    def rc_mode_switch(self, t_s: float, kin: Kinematics, mode: Px4Mode) -> int:
+        """The pilot flips the RC mode switch: the mode changes as by DO_SET_MODE, and PX4 tells
+        the companion computer only through the HEARTBEAT's mode."""
+        result = self.set_mode(t_s, kin, mode)
+        if result == ACCEPTED:
+            self._event(t_s, mavlink.MAV_SEVERITY_INFO, f"Pilot switched to {mode.name} (RC)")
+        return result
 
     def on_setpoint(self, setpoint: OffboardSetpoint) -> None:
         """Latest offboard setpoint (its receipt time feeds the entry check and the failsafe)."""
@@ -197,6 +221,7 @@ class Commander:
             target = self._target_enu_m
             self._switch(t_s, HOLD, kin)
             self._target_enu_m = target
+            self._brake = flight_tasks.Brake(target)
             self._event(t_s, mavlink.MAV_SEVERITY_INFO, "Takeoff complete, holding")
         if self.mode == OFFBOARD and not self._setpoint_fresh(t_s, self._params["COM_OF_LOSS_T"]):
             # PX4's default reaction is Position mode (COM_OBL_RC_ACT = 0); DESIGN asks for Hold,
@@ -214,11 +239,11 @@ class Commander:
             return flight_tasks.descend(kin, self._target_enu_m, self._target_yaw_enu_rad, self._params["MPC_LAND_SPEED"])
         if self.mode == POSCTL and self._sticks is not None and t_s - self._sticks.t_rx_s <= STICK_TIMEOUT_S:
             if not self._sticks.is_centred():
-                # Sticks fly the vehicle; the hold target follows so centring them holds here.
-                self._target_enu_m = flight_tasks.stopping_point(kin)
+                # Sticks fly the vehicle; centring them brakes and holds wherever it stops.
+                self._brake = flight_tasks.Brake.engage(kin)
                 self._target_yaw_enu_rad = kin.yaw_enu_rad
                 return flight_tasks.fly_sticks(kin, self._sticks)
-        return flight_tasks.hold_position(kin, self._target_enu_m, self._target_yaw_enu_rad)
+        return self._brake.command(kin, self._target_yaw_enu_rad)
 
     # ---- internals ------------------------------------------------------------------------
 
@@ -226,6 +251,7 @@ class Commander:
         return self._setpoint is not None and t_s - self._setpoint.t_rx_s <= max_age_s
 
     def _switch(self, t_s: float, mode: Px4Mode, kin: Kinematics) -> None:
+        self._brake = flight_tasks.Brake.engage(kin)
         self._target_enu_m = flight_tasks.stopping_point(kin)
         self._target_yaw_enu_rad = kin.yaw_enu_rad
         if mode != self.mode:

@@ -1,6 +1,7 @@
-"""What each PX4 mode asks of the velocity controller: position hold, take-off climb, landing
-descent, offboard velocity, position-mode sticks.  Each returns a world-ENU velocity and a yaw
-rate for ``sim.dynamics.QuadrotorDynamics`` (which plays PX4's velocity/attitude loops).
+"""What each PX4 mode asks of the velocity controller: position hold (braking to a stop first
+when engaged in flight), take-off climb, landing descent, offboard velocity, position-mode
+sticks.  Each returns a world-ENU velocity and a yaw rate for ``sim.dynamics.QuadrotorDynamics``
+(which plays PX4's velocity/attitude loops).
 
 Gains and limits follow PX4's multicopter position controller defaults where they matter
 (MPC_XY_P 0.95, MPC_Z_P 1, MC_YAW_P 2.8), rounded.
@@ -25,6 +26,8 @@ HOLD_MAX_SPEED_XY_M_S = 2.0
 HOLD_MAX_SPEED_UP_M_S = 1.0
 HOLD_MAX_SPEED_DOWN_M_S = 0.7
 MAX_YAW_RATE_RAD_S = math.radians(60.0)
+# Hold and Position mode lock the position once braking brought the speed below this (m/s).
+LOCK_SPEED_M_S = 0.1
 # Position mode: full stick deflection (PX4's MPC_VEL_MANUAL is faster; indoors we keep it slow).
 STICK_MAX_SPEED_XY_M_S = 2.0
 STICK_MAX_SPEED_Z_M_S = 1.0
@@ -40,16 +43,43 @@ class VelocityCommand:
 
 
 def stopping_point(kin: Kinematics) -> np.ndarray:
-    """Where the position hold settles when engaged now: pos + vel / gain (world ENU, m).
+    """Where a P-controlled position hold engaged now settles: pos + vel / gain (world ENU, m).
 
-    With this target the hold's first command equals the current velocity, so engaging Hold
-    brakes smoothly instead of jumping back to where the switch happened.
+    Take-off and landing hold x, y here: their first command equals the current velocity, so
+    they never jump back to where the switch happened.
     """
     gains = np.array([POSITION_GAIN_XY_1_S, POSITION_GAIN_XY_1_S, POSITION_GAIN_Z_1_S])
     target = kin.pos_enu_m + kin.vel_enu_m_s / gains
     if kin.on_ground:
         target[2] = kin.pos_enu_m[2]
     return target
+
+
+class Brake:
+    """Hold engaged in flight, as PX4's position lock does it: brake to a stop first (a zero
+    velocity setpoint, as hard as the velocity loop and the tilt limit allow), then lock the
+    position where the speed fell below LOCK_SPEED_M_S and hold that.
+
+    A hold that aimed at a point computed at the switch would either crawl to it (P-control
+    from far away) or overshoot and fly back; braking first and locking where the vehicle
+    stopped does neither.  Mutable: the lock is taken by :meth:`command`.
+    """
+
+    def __init__(self, lock_enu_m: np.ndarray | None = None) -> None:
+        self.lock_enu_m = None if lock_enu_m is None else np.asarray(lock_enu_m, dtype=np.float64).copy()
+
+    @classmethod
+    def engage(cls, kin: Kinematics) -> "Brake":
+        """Brake from the vehicle's state now (a landed vehicle holds where it is)."""
+        return cls(kin.pos_enu_m if kin.on_ground else None)
+
+    def command(self, kin: Kinematics, target_yaw_enu_rad: float) -> VelocityCommand:
+        """Zero velocity until the vehicle is slower than LOCK_SPEED_M_S, then hold that position."""
+        if self.lock_enu_m is None and float(np.linalg.norm(kin.vel_enu_m_s)) < LOCK_SPEED_M_S:
+            self.lock_enu_m = np.asarray(kin.pos_enu_m, dtype=np.float64).copy()
+        if self.lock_enu_m is None:
+            return VelocityCommand(np.zeros(3), yaw_rate_towards(kin.yaw_enu_rad, target_yaw_enu_rad))
+        return hold_position(kin, self.lock_enu_m, target_yaw_enu_rad)
 
 
 def yaw_rate_towards(yaw_enu_rad: float, target_yaw_enu_rad: float) -> float:

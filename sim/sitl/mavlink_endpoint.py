@@ -39,6 +39,9 @@ class MavlinkEndpoint:
         self._mav = mavlink.MAVLink(None, srcSystem=SYSTEM_ID, srcComponent=COMPONENT_ID)
         self.bad_datagrams = 0
         self.send_errors = 0
+        # A dead transmit line (fault injection): send() drops everything, receive() still works.
+        self.tx_silent = False
+        self.dropped_silent = 0
         log.info("MAVLink endpoint on udp %s:%d -> %s:%d", LOOPBACK, self.local_port, *self._dest)
 
     @property
@@ -49,9 +52,13 @@ class MavlinkEndpoint:
         return self._sock.fileno()
 
     def send(self, msg: mavlink.MAVLink_message) -> None:
-        """Pack with our system/component id and sequence number and send it."""
+        """Pack with our system/component id and sequence number and send it (dropped while
+        ``tx_silent``)."""
         data = msg.pack(self._mav)
         self._mav.seq = (self._mav.seq + 1) % 256
+        if self.tx_silent:
+            self.dropped_silent += 1
+            return
         try:
             self._sock.sendto(data, self._dest)
         except OSError as err:

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from runtime.faults import FaultKind
 from sim.world import WorldBatch
 
 from .camera_server import ServedFrame
@@ -57,19 +58,23 @@ def episode_record(
 
 @dataclass
 class Trace:
-    """Ground truth collected while flying: positions every ``period_s``, the collision, events."""
+    """Ground truth collected while flying: position and velocity every ``period_s``, the
+    collision, events."""
 
     period_s: float = 0.05
     t_s: list[float] = field(default_factory=list)
     pos_enu_m: list[list[float]] = field(default_factory=list)
+    vel_enu_m_s: list[list[float]] = field(default_factory=list)
     collision: dict | None = None
     events: list[tuple[float, str]] = field(default_factory=list)
 
-    def sample(self, t_s: float, pos_enu_m: np.ndarray) -> None:
-        """Record the position if ``period_s`` has passed since the last sample."""
+    def sample(self, t_s: float, pos_enu_m: np.ndarray, vel_enu_m_s: np.ndarray) -> None:
+        """Record position (world ENU, m) and velocity (m/s) if ``period_s`` has passed since the
+        last sample."""
         if not self.t_s or t_s - self.t_s[-1] >= self.period_s:
             self.t_s.append(t_s)
             self.pos_enu_m.append([round(float(v), 4) for v in pos_enu_m])
+            self.vel_enu_m_s.append([round(float(v), 4) for v in vel_enu_m_s])
 
     def record_collision(self, t_s: float, pos_enu_m: np.ndarray, what: str) -> None:
         if self.collision is None:
@@ -78,14 +83,19 @@ class Trace:
     def record_events(self, events: list[Event]) -> None:
         self.events.extend((e.t_s, e.text) for e in events)
 
-    def to_record(self, mode_log: list[tuple[float, str]], served: list[ServedFrame]) -> dict:
+    def to_record(
+        self, mode_log: list[tuple[float, str]], served: list[ServedFrame], injected: dict[FaultKind, float]
+    ) -> dict:
+        """JSON-ready; ``injections`` lists each injected fault with the time it first acted."""
         return {
             "t_s": self.t_s,
             "pos_enu_m": self.pos_enu_m,
+            "vel_enu_m_s": self.vel_enu_m_s,
             "collision": self.collision,
             "mode_log": [[t, mode] for t, mode in mode_log],
             "events": [[t, text] for t, text in self.events],
             "frame_t_s": [f.t_capture_ns * 1e-9 for f in served],
             "invalid_depth_frac": [f.invalid_depth_frac for f in served],
             "frames_served": len(served),
+            "injections": [{"kind": kind.value, "t_s": t_s} for kind, t_s in injected.items()],
         }

@@ -19,6 +19,8 @@ from pathlib import Path
 
 import torch
 
+from runtime.camera.frame import Frame
+from runtime.faults import Injection
 from sim.camera import CameraModel
 from sim.world import make_worlds
 
@@ -27,9 +29,11 @@ from .autopilot import Autopilot
 from .camera_feed import CameraFeed
 from .camera_server import FrameServer
 from .commander import Commander
+from .faults import VehicleFaults
 from .geodetic import GeodeticHome
 from .mavlink_endpoint import MavlinkEndpoint
 from .params import ParamTable
+from .px4 import OFFBOARD, POSCTL
 from .records import Trace, episode_record, write_json_atomic
 from .streams import StreamScheduler
 from .telemetry import Telemetry
@@ -42,7 +46,8 @@ MAX_LAG_S = 0.25
 @dataclass(frozen=True)
 class SitlConfig:
     """One SITL vehicle: ports on 127.0.0.1, the world (curriculum level, seed), output files,
-    physics and camera rates (Hz)."""
+    physics and camera rates (Hz), the faults to inject on itself, and where to keep a live
+    status (mode log) that others can poll (None: nowhere)."""
 
     mavlink_port: int
     camera_port: int
@@ -52,6 +57,8 @@ class SitlConfig:
     trace_json: Path
     physics_hz: float = 100.0
     camera_hz: float = 15.0
+    injections: tuple[Injection, ...] = ()
+    status_json: Path | None = None
 
     def validate(self) -> None:
         """Raise ValueError naming the bad option."""
@@ -82,7 +89,12 @@ class SitlVehicle:
         self._kin = self._airframe.kinematics(self._t_boot_ns)
         geo = GeodeticHome()
         params = ParamTable(takeoff_alt_m=float(start[2] - self._home_enu_m[2]))
-        self._commander = Commander(params, self._home_enu_m, self._kin, t_s)
+        self._faults = VehicleFaults(config.injections, config.seed)
+        self._commander = Commander(
+            params, self._home_enu_m, self._kin, t_s,
+            offboard_allowed=self._faults.offboard_allowed if self._faults.refuses_offboard else None,
+        )  # fmt: skip
+        self._modes_reported = 0
         self._server = FrameServer(config.camera_port)
         self._endpoint = MavlinkEndpoint(config.mavlink_port)
         self._autopilot = Autopilot(
@@ -97,7 +109,8 @@ class SitlVehicle:
         self._trace = Trace()
         # The render thread reads self._kin: it is replaced each tick, never mutated, so the
         # reference it gets is always one consistent state.
-        self._feed = CameraFeed(self._world, CameraModel(), lambda: self._kin, self._server.publish, config.camera_hz)
+        publish = self._publish_faulty if self._faults.camera_faults else self._server.publish
+        self._feed = CameraFeed(self._world, CameraModel(), lambda: self._kin, publish, config.camera_hz)
         self.overruns = 0
 
     def run(self, stop: threading.Event) -> None:
@@ -122,7 +135,7 @@ class SitlVehicle:
         log.info("episode written to %s: goal %s m from home", c.episode_json, [round(v, 2) for v in record["goal_rel_home_enu_m"]])
 
     def _write_trace(self) -> None:
-        record = self._trace.to_record(self._commander.mode_log, self._server.served())
+        record = self._trace.to_record(self._commander.mode_log, self._server.served(), self._faults.injected)
         write_json_atomic(self._config.trace_json, record)
         log.info(
             "trace written to %s: %d positions, %d frames served, collision %s; %d physics overruns, "
@@ -158,6 +171,7 @@ class SitlVehicle:
         t_ns = time.monotonic_ns()
         t_s = t_ns * 1e-9
         self._commander.update(t_s, self._kin)
+        self._apply_faults(t_s)
         command = self._commander.velocity_command(t_s, self._kin) if self._commander.armed else None
         hit = self._airframe.step(command, dt_s)
         self._kin = self._airframe.kinematics(t_ns)
@@ -165,7 +179,28 @@ class SitlVehicle:
             self._commander.crash(t_s, hit)
             self._trace.record_collision(t_s, self._kin.pos_enu_m, hit)
         self._trace.record_events(self._autopilot.publish(self._kin, t_s))
-        self._trace.sample(t_s, self._kin.pos_enu_m)
+        self._trace.sample(t_s, self._kin.pos_enu_m, self._kin.vel_enu_m_s)
+        if len(self._commander.mode_log) != self._modes_reported:
+            self._write_status()
+
+    def _apply_faults(self, t_s: float) -> None:
+        if self._commander.mode == OFFBOARD:
+            self._faults.note_offboard(self._commander.mode_log[-1][0])
+        if self._faults.pilot_takes_over(t_s):
+            self._commander.rc_mode_switch(t_s, self._kin, POSCTL)
+        self._endpoint.tx_silent = self._faults.telemetry_lost(t_s)
+
+    def _publish_faulty(self, frame: Frame) -> None:
+        """Camera thread: publish what the faulted camera delivers instead of ``frame``."""
+        delivered = self._faults.camera_frame(frame, time.monotonic())
+        if delivered is not None:
+            self._server.publish(delivered)
+
+    def _write_status(self) -> None:
+        """The live status file: the mode log so far (time.monotonic s, MAVSDK mode names)."""
+        self._modes_reported = len(self._commander.mode_log)
+        if self._config.status_json is not None:
+            write_json_atomic(self._config.status_json, {"mode_log": [[t, m] for t, m in self._commander.mode_log]})
 
 
 def limit_torch_threads() -> None:

@@ -1,5 +1,6 @@
 """The `cmnav sitl` orchestrator's own logic: merging the runtime's view with ground truth."""
 
+import argparse
 import json
 from pathlib import Path
 
@@ -7,7 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from sim.sitl_session import SitlError, SitlRequest, merge_summary, run_sitl
+from runtime.faults import FaultKind, FaultSite, Injection, parse_injection
+from sim.sitl_session import SitlError, SitlRequest, merge_summary, run_sitl, run_sitl_cli
 
 EPISODE = {
     "room_size_m": [11.0, 6.0, 5.0],
@@ -73,3 +75,33 @@ def test_success_far_from_goal_is_not_success(tmp_path):
 def test_missing_model_is_named(tmp_path):
     with pytest.raises(SitlError, match="model file .*nope.onnx not found.*cmnav export goal-seeker"):
         run_sitl(SitlRequest(tmp_path / "nope.onnx", 0, 0, 10.0, tmp_path))
+
+
+def test_killed_runtime_gets_the_vehicles_failsafe_trip_and_fault_record(tmp_path):
+    trace = _trace()
+    trace["mode_log"] = [[0.0, "HOLD"], [5.0, "OFFBOARD"], [8.05, "HOLD"]]
+    trace["vel_enu_m_s"] = [[1.0 if t < 8.5 else 0.0, 0.0, 0.0] for t in trace["t_s"]]
+    request = SitlRequest(Path("m.onnx"), 1, 7, 30.0, tmp_path, (Injection(FaultKind.RUNTIME_KILL, 2.0),))
+    flight = {"outcome": "aborted", "abort_reason": "runtime_killed", "log": None, "watchdog_trips": []}
+    summary = merge_summary(request, EPISODE, flight, trace, tmp_path, 30.0, t_kill_s=7.0)
+    assert summary["abort_reason"] == "runtime_killed"
+    (trip,) = summary["watchdog_trips"]
+    assert trip["cause"] == "offboard_loss_failsafe" and trip["detect_ms"] == pytest.approx(1050.0)
+    (fault,) = summary["faults"]
+    assert fault["t_inject_s"] == pytest.approx(2.0) and fault["hold_entered_s"] == pytest.approx(1.05)
+    assert fault["stopped_within_s"] == pytest.approx(1.5)
+
+
+def test_injections_go_to_the_process_where_the_fault_happens(tmp_path):
+    request = SitlRequest(Path("m.onnx"), 0, 1, 10.0, tmp_path, tuple(
+        parse_injection(t) for t in ("camera-stall@2", "nan-action@3", "runtime-kill@4")))  # fmt: skip
+    assert request.injections_at(FaultSite.VEHICLE) == ["--inject", "camera-stall@2"]
+    assert request.injections_at(FaultSite.RUNTIME) == ["--inject", "nan-action@3"]
+    assert request.kill_at_s == 4.0
+
+
+def test_bad_injection_is_refused_before_anything_starts(tmp_path, capsys):
+    args = argparse.Namespace(model="m.onnx", level=0, seed=0, timeout=10.0, out=str(tmp_path), json=False,
+                              inject=["camera-stal@2"])  # fmt: skip
+    assert run_sitl_cli(args) == 2
+    assert "unknown fault kind 'camera-stal'" in capsys.readouterr().err

@@ -32,3 +32,16 @@ def test_missing_option(capsys):
     with pytest.raises(SystemExit):
         parse_args(BASE[:-2])
     assert "--trace" in capsys.readouterr().err
+
+
+def test_faults_and_status_file():
+    config = parse_args(BASE + ["--inject", "camera-stall@2", "--inject", "offboard-refused@0", "--status-json", "s.json"])
+    assert [str(i) for i in config.injections] == ["camera-stall@2", "offboard-refused@0"]
+    assert config.status_json == Path("s.json")
+    assert parse_args(BASE).injections == () and parse_args(BASE).status_json is None
+
+
+def test_runtime_faults_are_refused_here(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        parse_args(BASE + ["--inject", "nan-action@2"])
+    assert exit_info.value.code == 2 and "unknown fault kind 'nan-action' here" in capsys.readouterr().err

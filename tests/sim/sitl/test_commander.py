@@ -120,14 +120,18 @@ def test_offboard_loss_failsafe_switches_to_hold_after_com_of_loss_t(commander):
     assert event.severity == mavlink.MAV_SEVERITY_WARNING and "offboard lost" in event.text
 
 
-def test_hold_brakes_smoothly_from_the_current_velocity(commander):
+def test_hold_brakes_to_a_stop_then_holds_where_it_stopped(commander):
     air = flying(commander)
     moving = kin(z=air.pos_enu_m[2], vel=(1.5, 0.0, 0.0))
     commander.on_setpoint(hover_setpoint(2.0, vel=(1.5, 0.0, 0.0)))
     commander.set_mode(2.0, moving, OFFBOARD)
     commander.set_mode(2.1, moving, HOLD)
-    cmd = commander.velocity_command(2.1, moving)
-    np.testing.assert_allclose(cmd.vel_enu_m_s, [1.5, 0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(commander.velocity_command(2.1, moving).vel_enu_m_s, 0.0, atol=1e-9)  # brake
+    stopped = kin(z=air.pos_enu_m[2], vel=(0.05, 0.0, 0.0), x=2.0)  # came to rest 1 m further on
+    commander.velocity_command(2.6, stopped)
+    drifted = kin(z=air.pos_enu_m[2], x=2.2)
+    cmd = commander.velocity_command(3.0, drifted)
+    assert cmd.vel_enu_m_s[0] == pytest.approx(-0.2)  # holds where it stopped, not where Hold began
 
 
 def test_land_descends_then_auto_disarms(commander):

@@ -1,0 +1,137 @@
+"""How a faulted SITL flight went, measured on ground truth (the SITL vehicle's trace) rather
+than on what the runtime believed: for each injected fault, when it acted, which trip it caused
+and how fast, what the response was, and when the vehicle had stopped and entered Hold.
+
+All times in the inputs are time.monotonic seconds (the host clock both processes share):
+the trace's ``t_s`` / ``mode_log`` / ``injections``, the runtime summary's ``t_episode_start_s``
+(zero of its trips' ``t_s``) and ``injections``, and the orchestrator's kill time.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from runtime.faults import FaultKind, FaultSite, Injection
+
+# Ground-truth speed below this counts as stopped (m/s): the fault tests' bound.
+STOPPED_SPEED_M_S = 0.2
+# A trip is matched to the first fault injected at most this long after it (s): the two clocks
+# are one, but the trace samples positions every 50 ms.
+MATCH_TOLERANCE_S = 0.05
+VEHICLE_FAILSAFE_CAUSE = "offboard_loss_failsafe"
+VEHICLE_FAILSAFE_RESPONSE = "vehicle_hold"
+_MEASURED = ("t_inject_s", "cause", "detect_ms", "response", "trip_after_inject_ms", "stopped_within_s",
+             "stopped_after_trip_s", "hold_entered_s")  # fmt: skip
+
+
+def fault_records(injections: tuple[Injection, ...], trace: dict, flight: dict, t_kill_s: float | None) -> list[dict]:
+    """One record per injection: ``{kind, injected, t_inject_s, cause, detect_ms, response,
+    trip_after_inject_ms, stopped_within_s, stopped_after_trip_s, hold_entered_s}``.
+
+    ``t_inject_s``: when the fault first acted, s after the vehicle entered OFFBOARD (0 for
+    offboard-refused: the moment it refused).  ``detect_ms``: the runtime's own figure (condition
+    true -> trip); ``trip_after_inject_ms``: injection -> trip on the common clock (includes the
+    configured limit, e.g. the stale-frame time).  ``stopped_within_s``: injection -> the first
+    moment from which the ground-truth speed stays below STOPPED_SPEED_M_S until the vehicle is
+    commanded to land (or the trace ends); ``stopped_after_trip_s``: the same from the trip (0 if
+    it had stopped before).  ``hold_entered_s``: injection -> the vehicle's first Hold after it.
+    A fault whose time never came (the flight ended first) has ``injected`` false and nulls.
+    runtime-kill's trip is the vehicle's own offboard-loss failsafe, read from the mode log.
+    """
+    t = np.asarray(trace["t_s"], dtype=np.float64)
+    speed = np.linalg.norm(np.asarray(trace["vel_enu_m_s"], dtype=np.float64).reshape(-1, 3), axis=1)
+    mode_log = [(float(tm), str(mode)) for tm, mode in trace["mode_log"]]
+    t_offboard = next((tm for tm, mode in mode_log if mode == "OFFBOARD"), None)
+    acted = {
+        FaultSite.VEHICLE: {d["kind"]: d["t_s"] for d in trace.get("injections", [])},
+        FaultSite.RUNTIME: {d["kind"]: d["t_s"] for d in flight.get("injections", [])},
+        FaultSite.ORCHESTRATOR: {} if t_kill_s is None else {FaultKind.RUNTIME_KILL.value: t_kill_s},
+    }
+    records = []
+    for injection in injections:
+        t_inject = acted[injection.site].get(injection.kind.value)
+        record: dict = {"kind": injection.kind.value, "at_s": injection.at_s, "injected": t_inject is not None}
+        if t_inject is None:
+            records.append(record | dict.fromkeys(_MEASURED))
+            continue
+        if injection.kind == FaultKind.RUNTIME_KILL:
+            trip, t_trip = vehicle_failsafe_trip(mode_log, t_inject)
+        else:
+            trip, t_trip = _runtime_trip_after(flight, t_inject)
+        t_stop = _stopped_from(t, speed, t_inject, _landing_commanded(mode_log, t_inject))
+        t_hold = _hold_from(mode_log, t_inject)
+        record.update(
+            t_inject_s=_round(t_inject - t_offboard if t_offboard is not None else 0.0),
+            cause=None if trip is None else trip["cause"],
+            detect_ms=None if trip is None else trip["detect_ms"],
+            response=None if trip is None else trip["response"],
+            trip_after_inject_ms=None if t_trip is None else _round(1000.0 * (t_trip - t_inject)),
+            stopped_within_s=None if t_stop is None else _round(t_stop - t_inject),
+            stopped_after_trip_s=None if t_stop is None or t_trip is None else _round(max(0.0, t_stop - t_trip)),
+            hold_entered_s=None if t_hold is None else _round(t_hold - t_inject),
+        )
+        records.append(record)
+    return records
+
+
+def vehicle_failsafe_trip(mode_log: list[tuple[float, str]], t_kill_s: float) -> tuple[dict | None, float | None]:
+    """The vehicle's own reaction to the runtime's death: its first Hold after the kill, as a trip
+    record (``t_s`` and ``hold_t_s`` from the kill, s; ``detect_ms`` kill -> Hold) and the Hold's
+    time; (None, None) if it never held."""
+    t_hold = next((tm for tm, mode in mode_log if mode == "HOLD" and tm >= t_kill_s), None)
+    if t_hold is None:
+        return None, None
+    return {
+        "cause": VEHICLE_FAILSAFE_CAUSE,
+        "detail": "runtime killed (SIGKILL): setpoints stopped, the vehicle's offboard-loss failsafe "
+        "(COM_OF_LOSS_T) switched to Hold; recorded by cmnav sitl from the vehicle's mode log",
+        "t_s": _round(t_hold - t_kill_s),
+        "detect_ms": _round(1000.0 * (t_hold - t_kill_s)),
+        "response": VEHICLE_FAILSAFE_RESPONSE,
+        "hold_t_s": _round(t_hold - t_kill_s),
+    }, t_hold
+
+
+def _runtime_trip_after(flight: dict, t_inject: float) -> tuple[dict | None, float | None]:
+    """The runtime's first response-setting trip at or after ``t_inject``, and its time."""
+    t0 = flight.get("t_episode_start_s")
+    if t0 is None:
+        return None, None
+    for trip in flight.get("watchdog_trips", []):
+        t_abs = t0 + trip["t_s"]
+        if trip["response"] != "already_tripped" and t_abs >= t_inject - MATCH_TOLERANCE_S:
+            return trip, t_abs
+    return None, None
+
+
+def _hold_from(mode_log: list[tuple[float, str]], t_from: float) -> float | None:
+    """When the vehicle was in Hold at or after ``t_from`` (``t_from`` itself if it already was)."""
+    current = [mode for tm, mode in mode_log if tm <= t_from][-1:]
+    if current == ["HOLD"]:
+        return t_from
+    return next((tm for tm, mode in mode_log if mode == "HOLD" and tm >= t_from), None)
+
+
+def _landing_commanded(mode_log: list[tuple[float, str]], t_from: float) -> float:
+    """When the vehicle was next told to land after ``t_from`` (it then moves on purpose), else inf."""
+    return next((tm for tm, mode in mode_log if mode == "LAND" and tm >= t_from), float("inf"))
+
+
+def _stopped_from(t: np.ndarray, speed: np.ndarray, t_from: float, t_until: float) -> float | None:
+    """The first time >= t_from from which speed < STOPPED_SPEED_M_S holds until t_until
+    (exclusive) or the end of the trace; the sample just before t_from counts (t_from itself is
+    returned when the vehicle was already stopped)."""
+    first = max(int(np.searchsorted(t, t_from, side="right")) - 1, 0)
+    window = np.arange(len(t)) >= first
+    window &= t < t_until
+    if not window.any():
+        return None
+    times, moving = t[window], speed[window] >= STOPPED_SPEED_M_S
+    if moving[-1]:
+        return None
+    last_moving = np.flatnonzero(moving)
+    return max(float(times[last_moving[-1] + 1] if len(last_moving) else times[0]), t_from)
+
+
+def _round(value: float) -> float:
+    return round(float(value), 3)

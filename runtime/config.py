@@ -2,8 +2,11 @@
 
 The contract (control period, action scaling, goal radius) is not configurable: it comes from
 ``runtime.contract``.  What a deployment may choose lives here: tighter action limits, watchdog
-thresholds, MAVLink connection, timeouts, logging.  Every value is validated when the dataclass
-is built; a bad value raises :class:`ConfigError` naming the key and the allowed range.
+thresholds, MAVLink connection, camera, mission, timeouts, logging.  Every value is validated
+when the dataclass is built; a bad value raises :class:`ConfigError` naming the key and the
+allowed range.  The TOML file of ``cmnav fly`` maps onto these dataclasses one to one (a table per
+dataclass, a key per field): ``runtime.config_loader.load_config``; ``examples/cmnav.toml``
+documents every key.
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .camera.realsense import RealSenseConfig
 from .contract import CONTROL_PERIOD_S, ActionLimits
 
 
@@ -82,6 +86,10 @@ class WatchdogConfig:
         )
 
 
+# Connection URL schemes MAVSDK 4 understands.
+MAVSDK_URL_SCHEMES = ("udpin", "udpout", "tcpin", "tcpout", "serial", "serial_flowcontrol")
+
+
 @dataclass(frozen=True)
 class VehicleConfig:
     """MAVLink connection and the timeouts of every await that talks to the autopilot (s)."""
@@ -95,10 +103,10 @@ class VehicleConfig:
 
     def __post_init__(self) -> None:
         _require(
-            isinstance(self.url, str) and "://" in self.url,
+            isinstance(self.url, str) and self.url.partition("://")[0] in MAVSDK_URL_SCHEMES and "://" in self.url,
             "vehicle.url",
             self.url,
-            'a MAVSDK connection URL such as "udpin://127.0.0.1:14540"',
+            f'a MAVSDK connection URL such as "udpin://127.0.0.1:14540" (schemes: {", ".join(MAVSDK_URL_SCHEMES)})',
         )
         for key in ("connect_timeout_s", "command_timeout_s", "health_timeout_s", "takeoff_timeout_s", "land_timeout_s"):
             _positive(f"vehicle.{key}", getattr(self, key))
@@ -109,12 +117,21 @@ class PolicyConfig:
     """The ONNX model, where it runs, and the deployment's action limits."""
 
     model_path: Path = Path("model.onnx")
-    providers: tuple[str, ...] = ("CPUExecutionProvider",)
+    model_sha256: str | None = None  # when set, the model file must have this SHA-256 (hex)
+    providers: tuple[str, ...] = ("CPUExecutionProvider",)  # in order of preference
+    provider_fallback: bool = False  # drop unavailable providers (logged) instead of refusing to start
     intra_op_threads: int = 0  # 0 = ONNX Runtime's default
     limits: ActionLimits = field(default_factory=ActionLimits)
 
     def __post_init__(self) -> None:
         _require(len(self.providers) > 0, "policy.providers", self.providers, "a non-empty list of execution providers")
+        _require(
+            self.model_sha256 is None
+            or (len(self.model_sha256) == 64 and all(ch in "0123456789abcdef" for ch in self.model_sha256.lower())),
+            "policy.model_sha256",
+            self.model_sha256,
+            "64 hexadecimal digits (`sha256sum MODEL`)",
+        )
         _require(
             isinstance(self.intra_op_threads, int) and self.intra_op_threads >= 0,
             "policy.intra_op_threads",
@@ -130,6 +147,10 @@ class RecorderConfig:
     log_dir: Path | None = Path("logs")  # None = do not record
     flush_period_s: float = 0.5  # a killed process loses at most about this much
     queue_size: int = 64  # records waiting for the writer thread; beyond that they are dropped
+    # Rotation (cmnav fly: one log per offboard episode): before a log starts, the oldest are
+    # deleted so that at most max_logs remain and the older ones take at most max_total_gb.
+    max_logs: int = 50
+    max_total_gb: float = 20.0
 
     def __post_init__(self) -> None:
         _require(
@@ -144,6 +165,94 @@ class RecorderConfig:
             self.queue_size,
             "an integer >= 8",
         )
+        _require(isinstance(self.max_logs, int) and self.max_logs >= 1, "recorder.max_logs", self.max_logs, "an integer >= 1")
+        _positive("recorder.max_total_gb", self.max_total_gb)
+
+
+@dataclass(frozen=True)
+class SimCameraConfig:
+    """The SITL vehicle's camera link (TCP on 127.0.0.1)."""
+
+    port: int = 0  # required with camera.source = "sim"
+
+
+@dataclass(frozen=True)
+class ReplayCameraConfig:
+    """Camera frames played back from an earlier flight log (bench runs without a camera)."""
+
+    path: Path | None = None  # required with camera.source = "replay"
+
+
+CAMERA_SOURCES = ("realsense", "sim", "replay")
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Which camera source the runtime reads (DESIGN §3), and its settings."""
+
+    source: str = "realsense"
+    first_frame_timeout_s: float = 10.0  # start-up fails if no frame comes in this long
+    realsense: RealSenseConfig = field(default_factory=RealSenseConfig)
+    sim: SimCameraConfig = field(default_factory=SimCameraConfig)
+    replay: ReplayCameraConfig = field(default_factory=ReplayCameraConfig)
+
+    def __post_init__(self) -> None:
+        _require(self.source in CAMERA_SOURCES, "camera.source", self.source, f"one of {', '.join(CAMERA_SOURCES)}")
+        _positive("camera.first_frame_timeout_s", self.first_frame_timeout_s)
+        if self.source == "sim":
+            _require(0 < self.sim.port < 65536, "camera.sim.port", self.sim.port, 'a TCP port in 1..65535 with source = "sim"')
+        if self.source == "replay":
+            _require(self.replay.path is not None, "camera.replay.path", self.replay.path, 'a flight log path with source = "replay"')
+
+
+@dataclass(frozen=True)
+class MissionConfig:
+    """What ``cmnav fly`` does once connected.
+
+    ``goal_rel_home_enu_m``: the goal relative to home (the take-off point; PX4 sets home at
+    arming), ENU metres (east, north, up).  Without ``allow_arm_takeoff`` the runtime waits for
+    the pilot to arm, take off and switch to offboard, flies an episode, commands Hold, and waits
+    for the next switch to offboard (``max_episodes``, 0 = until stopped).  With it (SITL dry runs)
+    the runtime arms, takes off to ``takeoff_alt_m`` above home, flies one episode, lands and exits.
+    """
+
+    goal_rel_home_enu_m: tuple[float, float, float] | None = None  # required by cmnav fly
+    episode_timeout_s: float = 60.0  # offboard flight time limit of one episode
+    allow_arm_takeoff: bool = False
+    takeoff_alt_m: float = 1.5  # m above home, with allow_arm_takeoff
+    max_episodes: int = 0  # 0 = fly every time the pilot selects offboard, until stopped
+
+    def __post_init__(self) -> None:
+        if self.goal_rel_home_enu_m is not None:
+            _require(
+                len(self.goal_rel_home_enu_m) == 3 and all(math.isfinite(v) for v in self.goal_rel_home_enu_m),
+                "mission.goal_rel_home_enu_m",
+                self.goal_rel_home_enu_m,
+                "three finite numbers [east, north, up] in metres from home",
+            )
+        _positive("mission.episode_timeout_s", self.episode_timeout_s)
+        _require(0.0 < self.takeoff_alt_m <= 50.0, "mission.takeoff_alt_m", self.takeoff_alt_m, "in (0, 50] m above home")
+        _require(
+            isinstance(self.max_episodes, int) and self.max_episodes >= 0,
+            "mission.max_episodes",
+            self.max_episodes,
+            "an integer >= 0 (0 = until stopped)",
+        )
+        if self.allow_arm_takeoff:
+            _require(
+                self.max_episodes in (0, 1),
+                "mission.max_episodes",
+                self.max_episodes,
+                "0 or 1 with allow_arm_takeoff = true (a dry run flies once, lands and exits)",
+            )
+
+
+@dataclass(frozen=True)
+class SystemdConfig:
+    """Talking to systemd (``Type=notify``): READY, STATUS lines and WATCHDOG pings on
+    ``$NOTIFY_SOCKET``; nothing is sent when systemd did not set it."""
+
+    notify: bool = True
 
 
 @dataclass(frozen=True)
@@ -154,3 +263,24 @@ class RuntimeConfig:
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     watchdog: WatchdogConfig = field(default_factory=WatchdogConfig)
     recorder: RecorderConfig = field(default_factory=RecorderConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    mission: MissionConfig = field(default_factory=MissionConfig)
+    systemd: SystemdConfig = field(default_factory=SystemdConfig)
+
+    def __post_init__(self) -> None:
+        goal = self.mission.goal_rel_home_enu_m
+        if goal is None:
+            return
+        fence = self.watchdog
+        _require(
+            math.hypot(goal[0], goal[1]) < fence.geofence_radius_m,
+            "mission.goal_rel_home_enu_m",
+            goal,
+            f"horizontally within watchdog.geofence_radius_m = {fence.geofence_radius_m} m of home",
+        )
+        _require(
+            fence.altitude_min_m <= goal[2] <= fence.altitude_max_m,
+            "mission.goal_rel_home_enu_m",
+            goal,
+            f"at a height inside the watchdog's band [{fence.altitude_min_m}, {fence.altitude_max_m}] m above home",
+        )

@@ -1,6 +1,8 @@
 """The flight loop: asyncio tasks joined by latest-value slots (DESIGN §3).
 
-- camera task: the source's frames -> the latest-frame slot (+ the flight log);
+- camera task: the source's frames, checked (``runtime.camera.validate``: unfit ones are counted
+  and dropped, so garbage trips the watchdog as "no valid frame") -> the latest-frame slot (+ the
+  flight log);
 - policy task: on each new frame, preprocess (runtime.contract.images), observation state, ONNX
   step with the GRU hidden state, clip, action -> velocity (ActionLimits), send through the
   command gate; deadline = the control period (missed deadlines counted; the watchdog trips
@@ -10,8 +12,9 @@
 
 :class:`FlightLoop` knows nothing about how offboard was entered: the SITL entry point arms, takes
 off and starts offboard itself; a field entry point waits for the pilot to switch to offboard.
-Either then calls :meth:`FlightLoop.fly`, which resets the GRU state (offboard (re)entered) and
-flies until the goal, the time limit, a watchdog trip or the pilot taking over.
+Either then calls :meth:`FlightLoop.fly`, which resets the GRU state (offboard (re)entered),
+refuses a goal outside the geofence (a trip at once) and flies until the goal, the time limit, a
+watchdog trip or the pilot taking over.
 """
 
 from __future__ import annotations
@@ -21,11 +24,12 @@ import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Callable, Protocol
 
 import numpy as np
 
 from .camera import CameraSource, Frame
+from .camera.validate import FrameValidator
 from .command_gate import Commander, CommandGate
 from .config import RuntimeConfig
 from .contract import (
@@ -33,16 +37,13 @@ from .contract import (
     HOVER,
     ImageContractError,
     action_to_velocity_flu,
-    clip_action,
     invalid_depth_fraction,
     mavsdk_to_velocity_flu,
-    observation_state,
-    preprocess_depth,
-    preprocess_gray,
     velocity_flu_to_mavsdk,
 )
-from .contract.constants import ACTION_DIM, GOAL_REACHED_RADIUS_M
+from .contract.constants import GOAL_REACHED_RADIUS_M
 from .model import PolicyModel
+from .policy_step import PolicyMemory, compute_step
 from .recorder import Recorder
 from .slots import LatestSlot
 from .timing import StageTimes
@@ -54,6 +55,7 @@ log = logging.getLogger(__name__)
 _NS_PER_MS = 1_000_000
 _NS_PER_S = 1_000_000_000
 STATE_LOG_PERIOD_S = 0.1
+ALIVE_SLEEP_SLICE_S = 0.1  # how often on_alive is called while the loop sleeps on purpose
 
 
 class VehicleLink(Commander, Protocol):
@@ -77,6 +79,7 @@ class EpisodeResult:
     stage_ms: dict
     watchdog_trips: list[dict] = field(default_factory=list)
     final_distance_m: float = float("nan")
+    frames_rejected: int = 0  # unfit camera frames since FlightLoop.start (runtime.camera.validate)
 
 
 class FlightLoop:
@@ -89,19 +92,28 @@ class FlightLoop:
         vehicle: VehicleLink,
         camera: CameraSource,
         recorder: Recorder | None = None,
+        on_alive: Callable[[], None] | None = None,
     ) -> None:
+        """``on_alive`` is called on every healthy iteration: each policy step whose command went
+        out, each watchdog check while a trip response runs, and while hovering before Hold at the
+        end of an episode.  A stalled loop stops calling it (the field program feeds systemd's
+        watchdog from it)."""
         self.config = config
         self.model = model
         self.vehicle = vehicle
         self.camera = camera
         self.recorder = recorder
+        self.on_alive = on_alive
         self.gate = CommandGate(vehicle)
         self.watchdog = Watchdog(config.watchdog, self.gate, on_event=self._on_watchdog_event)
-        self.frames: LatestSlot[Frame] = LatestSlot("frames")
+        self.frames: LatestSlot[Frame] = LatestSlot("frames")  # valid frames only
         self.frames_received = 0
+        self.frames_rejected = 0  # unfit frames (runtime.camera.validate), never stepped on
+        self._validator = FrameValidator()
+        self._rejected_since_valid = 0
+        self._last_rejection = ""
         self._goal_enu_m = np.zeros(3)
-        self._hidden = model.initial_hidden()
-        self._prev_action = np.zeros(ACTION_DIM, dtype=np.float32)
+        self._memory = PolicyMemory(model)
         self._step_started_ns = 0
         self._background: list[asyncio.Task] = []
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="policy_step")
@@ -109,11 +121,15 @@ class FlightLoop:
     # ------------------------------------------------------------------ lifecycle
 
     async def start(self) -> None:
-        """Start the camera and the state-logging tasks (they run until :meth:`close`)."""
+        """Start the camera and the state-logging tasks (they run until :meth:`close`).
+
+        ``recorder`` may be swapped (or set to None) between episodes: the tasks log to whichever
+        is set (``cmnav fly`` writes one log per offboard episode)."""
         await self.camera.start()
-        self._background = [asyncio.create_task(self._camera_task(), name="camera")]
-        if self.recorder is not None:
-            self._background.append(asyncio.create_task(self._state_log_task(self.recorder), name="state_log"))
+        self._background = [
+            asyncio.create_task(self._camera_task(), name="camera"),
+            asyncio.create_task(self._state_log_task(), name="state_log"),
+        ]
         for task in self._background:
             task.add_done_callback(log_task_failure)
 
@@ -145,8 +161,7 @@ class FlightLoop:
 
     def reset_hidden(self) -> None:
         """Zero the GRU state and the previous action (offboard (re)entered, or a new goal)."""
-        self._hidden = self.model.initial_hidden()
-        self._prev_action = np.zeros(ACTION_DIM, dtype=np.float32)
+        self._memory.reset()
 
     async def wait_first_frame(self, timeout_s: float) -> Frame:
         """The first camera frame; ``asyncio.TimeoutError`` if none comes in time."""
@@ -161,6 +176,7 @@ class FlightLoop:
         self.watchdog.start(episode.t0_ns, self.vehicle.state())
         self._on_watchdog_event({"event": "start", "detail": repr(self.config.watchdog), "t_s": 0.0})
         log.info("episode start: goal %s (local ENU m), time limit %.1f s", np.round(self._goal_enu_m, 2), timeout_s)
+        await self.watchdog.check_goal(self._goal_enu_m, time.monotonic_ns())
         policy = asyncio.create_task(self._policy_task(episode), name="policy")
         watchdog = asyncio.create_task(self._watchdog_task(), name="watchdog")
         try:
@@ -199,7 +215,7 @@ class FlightLoop:
         try:
             if await self.gate.hover():
                 self._log_hover("episode_end_hover")
-            await asyncio.sleep(self.config.watchdog.hold_grace_s)
+            await self._sleep_alive(self.config.watchdog.hold_grace_s)
             await self.gate.hold()
         except VehicleError as err:
             log.error("hover/Hold at the end of the episode failed: %s", err)
@@ -212,7 +228,7 @@ class FlightLoop:
             if watchdog.exception() is None:
                 return
             # The watchdog task itself failed: command Hold here so the vehicle is not left hovering in offboard.
-            await asyncio.sleep(self.config.watchdog.hold_grace_s)
+            await self._sleep_alive(self.config.watchdog.hold_grace_s)
             try:
                 await self.gate.hold()
             except VehicleError as err:
@@ -227,14 +243,24 @@ class FlightLoop:
 
     async def _camera_task(self) -> None:
         async for frame in self.camera.frames():
-            self.frames.put(frame)
             self.frames_received += 1
+            problem = self._validator.problem(frame, time.monotonic_ns())
+            if problem is not None:
+                self.frames_rejected += 1
+                self._rejected_since_valid += 1
+                self._last_rejection = problem
+                if self._rejected_since_valid == 1 or self.frames_rejected % 100 == 0:
+                    log.error("camera frame %d rejected: %s (%d rejected so far)", frame.seq, problem, self.frames_rejected)
+                continue
+            self._rejected_since_valid = 0
+            self.frames.put(frame)
             if self.recorder is not None:
                 self.recorder.log_frame(frame)
 
-    async def _state_log_task(self, recorder: Recorder) -> None:
+    async def _state_log_task(self) -> None:
         while True:
-            recorder.log_state(time.monotonic_ns(), self.vehicle.state())
+            if self.recorder is not None:
+                self.recorder.log_state(time.monotonic_ns(), self.vehicle.state())
             await asyncio.sleep(STATE_LOG_PERIOD_S)
 
     async def _watchdog_task(self) -> None:
@@ -247,11 +273,15 @@ class FlightLoop:
                     t_last_frame_capture_ns=latest.value.t_capture_ns if latest else 0,
                     t_step_started_ns=self._step_started_ns,
                     vehicle=self.vehicle.state(),
+                    frames_rejected=self._rejected_since_valid,
+                    last_rejection=self._last_rejection,
                 )
             )
             trip = self.watchdog.tripped
             if self.watchdog.pilot_took_over or (trip is not None and trip.hold_t_ns is not None):
                 return
+            if trip is not None and self.on_alive is not None:
+                self.on_alive()  # the response (hover, then Hold) is running: the loop is doing its job
             await asyncio.sleep(period_s)
 
     async def _policy_task(self, episode: "_Episode") -> None:
@@ -276,41 +306,32 @@ class FlightLoop:
             self._step_started_ns = 0
 
     async def _step_inner(self, frame: Frame, episode: "_Episode", t_start: int) -> bool:
+        inputs = self._memory.inputs(self.vehicle.state(), self._goal_enu_m)
+        limit_s = self.config.watchdog.step_trip_ms / 1000.0 - (time.monotonic_ns() - t_start) / _NS_PER_S
+        loop = asyncio.get_running_loop()
         try:
-            gray = preprocess_gray(frame.gray_u8)
-            depth = preprocess_depth(frame.depth_m)
+            result = await asyncio.wait_for(
+                loop.run_in_executor(self._executor, compute_step, self.model, frame, inputs),
+                timeout=max(limit_s, 0.0),
+            )
         except ImageContractError as err:
             episode.bad_frames += 1
             log.error("frame %d skipped: %s", frame.seq, err)
             return False
-        self.watchdog.note_depth(frame.t_capture_ns, invalid_depth_fraction(frame.depth_m))
-        t_pre = time.monotonic_ns()
-        state = self.vehicle.state()
-        obs_state = observation_state(state.pos_enu_m, self._goal_enu_m, state.quat_enu_flu, state.vel_body_flu_m_s,
-                                      state.angvel_body_flu_rad_s, self._prev_action)  # fmt: skip
-        t_obs = time.monotonic_ns()
-        limit_s = self.config.watchdog.step_trip_ms / 1000.0 - (t_obs - t_start) / _NS_PER_S
-        loop = asyncio.get_running_loop()
-        try:
-            out = await asyncio.wait_for(
-                loop.run_in_executor(self._executor, self.model.step, gray, depth, obs_state, self._hidden),
-                timeout=max(limit_s, 0.0),
-            )
         except asyncio.TimeoutError:
             now = time.monotonic_ns()
             await self.watchdog.trip(
                 TripCause.STEP_DEADLINE,
-                f"inference did not finish within the step limit {self.config.watchdog.step_trip_ms:.0f} ms",
+                f"the policy step did not finish within the step limit {self.config.watchdog.step_trip_ms:.0f} ms",
                 t_start + int(self.config.watchdog.step_trip_ms * _NS_PER_MS), now,
             )  # fmt: skip
             return False
-        t_inf = time.monotonic_ns()
-        clipped = clip_action(out.action).astype(np.float32)
+        self.watchdog.note_depth(frame.t_capture_ns, invalid_depth_fraction(frame.depth_m))
         if self.recorder is not None:
-            self.recorder.log_step(frame, np.concatenate([obs_state, out.latent]), out.action, clipped, out.latent)
-        if await self.watchdog.check_action(out.action, t_start, time.monotonic_ns()) is not None:
+            self.recorder.log_step(frame, result)
+        if await self.watchdog.check_action(result.output.action, t_start, time.monotonic_ns()) is not None:
             return False
-        cmd_flu = action_to_velocity_flu(clipped, self.config.policy.limits)
+        cmd_flu = action_to_velocity_flu(result.action_clipped, self.config.policy.limits)
         cmd = velocity_flu_to_mavsdk(cmd_flu)
         try:
             sent = await self.gate.send_policy(cmd)
@@ -319,13 +340,12 @@ class FlightLoop:
             await self.watchdog.trip(TripCause.POLICY_ERROR, f"velocity command failed: {err}", now, now)
             return False
         t_cmd = time.monotonic_ns()
-        self._hidden = out.hidden_next
-        self._prev_action = clipped
+        self._memory.advance(result)
         stages_ms = {
-            "preprocess": (t_pre - t_start) / _NS_PER_MS,
-            "observation": (t_obs - t_pre) / _NS_PER_MS,
-            "inference": (t_inf - t_obs) / _NS_PER_MS,
-            "command": (t_cmd - t_inf) / _NS_PER_MS,
+            "preprocess": (result.t_preprocessed_ns - t_start) / _NS_PER_MS,
+            "observation": (result.t_observed_ns - result.t_preprocessed_ns) / _NS_PER_MS,
+            "inference": (result.t_inferred_ns - result.t_observed_ns) / _NS_PER_MS,
+            "command": (t_cmd - result.t_inferred_ns) / _NS_PER_MS,
             "step": (t_cmd - t_start) / _NS_PER_MS,
             "frame_age": (t_cmd - frame.t_capture_ns) / _NS_PER_MS,
         }
@@ -336,8 +356,18 @@ class FlightLoop:
         if self.recorder is not None:
             self.recorder.log_command(t_cmd, frame, cmd_flu, cmd, "policy", sent)
             self.recorder.log_timing(frame, stages_ms, missed)
-        episode.last_distance_m = float(np.linalg.norm(self._goal_enu_m - state.pos_enu_m))
+        if self.on_alive is not None:
+            self.on_alive()
+        episode.last_distance_m = float(np.linalg.norm(self._goal_enu_m - inputs.pos_enu_m))
         return episode.last_distance_m < GOAL_REACHED_RADIUS_M
+
+    async def _sleep_alive(self, duration_s: float) -> None:
+        """Sleep ``duration_s`` (hovering before Hold) while still reporting the loop alive."""
+        deadline = time.monotonic() + duration_s
+        while (remaining_s := deadline - time.monotonic()) > 0.0:
+            if self.on_alive is not None:
+                self.on_alive()
+            await asyncio.sleep(min(remaining_s, ALIVE_SLEEP_SLICE_S))
 
     # ------------------------------------------------------------------ results and logging
 
@@ -368,6 +398,7 @@ class FlightLoop:
             stage_ms=stage_ms,
             watchdog_trips=self.watchdog.records(),
             final_distance_m=round(final_distance_m, 3),
+            frames_rejected=self.frames_rejected,
         )
 
 

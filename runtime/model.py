@@ -9,6 +9,7 @@ before anything is armed.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -79,13 +80,7 @@ class PolicyModel:
         self.path = Path(path)
         if not self.path.is_file():
             raise ModelLoadError(f"model file {self.path} does not exist: check the path in the config")
-        available = ort.get_available_providers()
-        missing = [p for p in providers if p not in available]
-        if missing:
-            raise ProviderUnavailableError(
-                f"execution provider(s) {missing} not in this ONNX Runtime build (available: {available}): "
-                "install the onnxruntime build that has them, or remove them from policy.providers"
-            )
+        providers = resolve_providers(providers, fallback=False)
         options = ort.SessionOptions()
         options.intra_op_num_threads = intra_op_threads
         options.log_severity_level = 3
@@ -96,6 +91,7 @@ class PolicyModel:
         check_contract_metadata(self._session.get_modelmeta().custom_metadata_map, source=str(self.path))
         self.hidden_size = self._check_signature()
         self.providers = tuple(self._session.get_providers())
+        self.sha256 = file_sha256(self.path)
         self._output_names = [c.ONNX_OUTPUT_ACTION, c.ONNX_OUTPUT_HIDDEN, c.ONNX_OUTPUT_LATENT]
         log.info("loaded %s: hidden size %d, providers %s", self.path, self.hidden_size, self.providers)
 
@@ -127,6 +123,10 @@ class PolicyModel:
         assert isinstance(hidden_size, int)
         return hidden_size
 
+    def log_metadata(self) -> dict[str, str]:
+        """What a flight log records about this model (``cmnav replay`` finds and checks it by these)."""
+        return {"model": str(self.path.resolve()), "model_sha256": self.sha256, "model_providers": ",".join(self.providers)}
+
     def initial_hidden(self) -> np.ndarray:
         """The GRU state at reset: zeros (H,), float32."""
         return np.zeros(self.hidden_size, dtype=np.float32)
@@ -147,6 +147,36 @@ class PolicyModel:
         action, hidden_next, latent = self._session.run(self._output_names, feeds)
         return StepOutput(action=action[0], hidden_next=hidden_next[0], latent=latent[0])
 
+
+
+def file_sha256(path: str | Path) -> str:
+    """SHA-256 of a file's bytes, lowercase hex."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def resolve_providers(requested: Sequence[str], fallback: bool) -> tuple[str, ...]:
+    """The execution providers to use, in order of preference.
+
+    Without ``fallback`` every requested provider must be in this ONNX Runtime build; with it the
+    missing ones are dropped (logged) as long as one remains.  Raises
+    :class:`ProviderUnavailableError` naming what is missing and what is available.
+    """
+    available = ort.get_available_providers()
+    present = tuple(p for p in requested if p in available)
+    missing = [p for p in requested if p not in available]
+    if missing and (not fallback or not present):
+        raise ProviderUnavailableError(
+            f"execution provider(s) {missing} not in this ONNX Runtime build (available: {available}): "
+            "install the onnxruntime build that has them (on a Jetson: NVIDIA's onnxruntime-gpu wheel), "
+            "remove them from policy.providers, or set policy.provider_fallback = true"
+        )
+    if missing:
+        log.warning("execution provider(s) %s not available; falling back to %s", missing, list(present))
+    return present
 
 
 def _as_input(array: np.ndarray, shape: tuple[int, ...], name: str) -> np.ndarray:

@@ -4,7 +4,8 @@ Channels (topic: schema):
 - ``/camera/depth``: ``foxglove.RawImage`` 32FC1, the raw camera depth in metres (0/NaN = invalid)
 - ``/camera/gray``: ``foxglove.RawImage`` mono8
 - ``/vehicle/state``: ``cmnav.VehicleState`` (local ENU world, FLU body, receive times)
-- ``/policy/observation``: ``cmnav.Observation`` (15 state values + 64 latent = 79)
+- ``/policy/observation``: ``cmnav.Observation`` (15 state values + 64 latent = 79, and what the
+  step was computed from: telemetry, goal and GRU reset count, so ``cmnav replay`` can redo it)
 - ``/policy/action``: ``cmnav.Action`` (raw and clipped, in [-1, 1])
 - ``/vehicle/command``: ``cmnav.VelocityCommand`` (body FLU and MAVSDK FRD forms)
 - ``/policy/latent``: ``cmnav.Latent`` (64)
@@ -46,6 +47,7 @@ from foxglove.messages import RawImage, Timestamp
 from .camera.frame import Frame
 from .config import RecorderConfig
 from .contract import CONTRACT_VERSION, VelocityBodyYawspeed
+from .policy_step import StepResult
 from .vehicle import VehicleState
 
 log = logging.getLogger(__name__)
@@ -70,8 +72,11 @@ _SCHEMAS: dict[str, tuple[str, str, dict[str, Any]]] = {
         "height_above_home_m": {"type": ["number", "null"]}, "flight_mode": {"type": "string"},
         "armed": {"type": "boolean"}, "in_air": {"type": "boolean"}, "landed_state": {"type": "string"},
         "t_posvel_ns": _INT, "t_att_ns": _INT, "t_mode_ns": _INT}),
-    TOPIC_OBSERVATION: ("cmnav.Observation", "Policy observation: [0:15] state (runtime.contract.observation), [15:79] latent", {
-        "t_capture_ns": _INT, "frame_seq": _INT, "observation": _NUM_ARRAY}),
+    TOPIC_OBSERVATION: ("cmnav.Observation", "Policy observation: [0:15] state (runtime.contract.observation), [15:79] latent; "
+                        "the step's inputs: telemetry (local ENU world, FLU body), goal (local ENU, m), hidden_epoch = GRU resets so far", {
+        "t_capture_ns": _INT, "frame_seq": _INT, "observation": _NUM_ARRAY, "hidden_epoch": _INT,
+        "pos_enu_m": _NUM_ARRAY, "quat_enu_flu": _NUM_ARRAY, "vel_body_flu_m_s": _NUM_ARRAY,
+        "angvel_body_flu_rad_s": _NUM_ARRAY, "goal_enu_m": _NUM_ARRAY}),
     TOPIC_ACTION: ("cmnav.Action", "Policy action: raw ONNX output and clipped to [-1, 1] (null = NaN/Inf)", {
         "t_capture_ns": _INT, "frame_seq": _INT, "raw": _NUM_ARRAY, "clipped": _NUM_ARRAY}),
     TOPIC_COMMAND: ("cmnav.VelocityCommand", "Velocity command: body FLU (m/s, rad/s) and MAVSDK FRD form (m/s, deg/s)", {
@@ -159,16 +164,9 @@ class Recorder:
     def log_state(self, t_ns: int, state: VehicleState) -> None:
         self._put(("state", t_ns, state))
 
-    def log_step(
-        self,
-        frame: Frame,
-        observation: np.ndarray,
-        action_raw: np.ndarray,
-        action_clipped: np.ndarray,
-        latent: np.ndarray,
-    ) -> None:
-        """One policy step's observation (79), actions (3) and latent (64), stamped with the frame."""
-        self._put(("step", frame.t_capture_ns, (frame.seq, observation, action_raw, action_clipped, latent)))
+    def log_step(self, frame: Frame, step: StepResult) -> None:
+        """One policy step's inputs, observation (79), actions (3) and latent (64), stamped with the frame."""
+        self._put(("step", frame.t_capture_ns, (frame.seq, step)))
 
     def log_command(
         self, t_ns: int, frame: Frame | None, cmd_flu: np.ndarray, cmd: VelocityBodyYawspeed, source: str, sent: bool
@@ -240,11 +238,17 @@ class Recorder:
         elif kind == "state":
             self._log_json(TOPIC_STATE, log_time, _state_message(t_ns, payload))
         elif kind == "step":
-            seq, observation, raw, clipped, latent = payload
+            seq, step = payload
             head = {"t_capture_ns": t_ns, "frame_seq": seq}
-            self._log_json(TOPIC_OBSERVATION, log_time, {**head, "observation": _floats(observation)})
-            self._log_json(TOPIC_ACTION, log_time, {**head, "raw": _floats(raw), "clipped": _floats(clipped)})
-            self._log_json(TOPIC_LATENT, log_time, {**head, "latent": _floats(latent)})
+            out, inputs = step.output, step.inputs
+            self._log_json(TOPIC_OBSERVATION, log_time, {
+                **head, "observation": _floats(np.concatenate([step.observation_state, out.latent])),
+                "hidden_epoch": inputs.hidden_epoch, "pos_enu_m": _floats(inputs.pos_enu_m),
+                "quat_enu_flu": _floats(inputs.quat_enu_flu), "vel_body_flu_m_s": _floats(inputs.vel_body_flu_m_s),
+                "angvel_body_flu_rad_s": _floats(inputs.angvel_body_flu_rad_s), "goal_enu_m": _floats(inputs.goal_enu_m),
+            })  # fmt: skip
+            self._log_json(TOPIC_ACTION, log_time, {**head, "raw": _floats(out.action), "clipped": _floats(step.action_clipped)})
+            self._log_json(TOPIC_LATENT, log_time, {**head, "latent": _floats(out.latent)})
         elif kind == "command":
             frame, cmd_flu, cmd, source, sent = payload
             self._log_json(TOPIC_COMMAND, log_time, {

@@ -5,6 +5,9 @@ Connects to the SITL vehicle (MAVSDK ``udpin://127.0.0.1:PORT``) and its camera 
 to ``--takeoff-alt-m`` and waits for Hold there, sets a hover setpoint, starts offboard, flies
 the policy (:class:`runtime.flight.FlightLoop`) until within GOAL_REACHED_RADIUS_M of the goal,
 the time limit or an abort, hovers, Holds, lands, waits for disarm and writes the summary JSON.
+If the autopilot refuses offboard, it records the trip (``offboard_refused``), commands Hold and
+lands without flying; if the pilot takes over, it stops commanding and does nothing more.
+``--inject`` (tests only) injects the runtime's faults of ``runtime.faults``.
 
 Unlike the field program this one arms and takes off by itself: that is what a SITL dry run is.
 
@@ -12,8 +15,11 @@ Exit codes: 0 success; 1 timeout or aborted in flight; 2 the episode could not b
 refused, no autopilot, not healthy, takeoff failed, ...).  The summary is written in every case
 it can be: ``{outcome: success|timeout|aborted, abort_reason, time_s, frames, missed_deadlines,
 step_ms {p50, p99}, stage_ms {stage: {p50, p99}}, watchdog_trips [...], log,
-t_launch_to_offboard_s, goal_rel_home_enu_m, final_distance_m, ...}``; ``time_s`` runs from
-offboard start to the goal, ``t_launch_to_offboard_s`` from this process's start to offboard confirmed by telemetry.
+t_launch_to_offboard_s, goal_rel_home_enu_m, final_distance_m, t_episode_start_s, injections, ...}``;
+``time_s`` runs from offboard start to the goal, ``t_launch_to_offboard_s`` from this process's
+start to offboard confirmed by telemetry; ``t_episode_start_s`` is when the episode started (the
+zero of the trips' ``t_s``) and ``injections`` ``[{kind, t_s}]`` when each injected fault first
+acted, both time.monotonic seconds (the host's clock, shared with the SITL vehicle's trace).
 """
 
 from __future__ import annotations
@@ -33,10 +39,13 @@ import numpy as np
 from .camera.sim_source import SimCameraSource
 from .config import PolicyConfig, RecorderConfig, RuntimeConfig, VehicleConfig
 from .contract import HOVER, ContractMismatchError
-from .flight import EpisodeResult, FlightLoop
+from .fault_injection import FaultyPolicy, shrink_geofence, shrink_geofence_at
+from .faults import FaultKind, FaultSite, Injection, InjectionError, parse_injection
+from .flight import EpisodeResult, FlightLoop, log_task_failure
 from .model import ModelLoadError, PolicyModel
 from .recorder import Recorder, RecorderError
 from .vehicle import MODE_OFFBOARD, Vehicle, VehicleError
+from .watchdog import TripCause
 
 log = logging.getLogger("runtime.sitl_flight")
 
@@ -69,8 +78,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--log-dir", type=Path, required=True, help=f"directory for the MCAP log ({LOG_NAME})")
     parser.add_argument("--summary", type=Path, required=True, help="where to write the summary JSON")
     parser.add_argument("--providers", default="CPUExecutionProvider", help="ONNX Runtime execution providers, comma-separated")
+    parser.add_argument("--inject", action="append", default=[], metavar="KIND@SECONDS",
+                        help="fault injection for tests (repeatable): inference-overrun, nan-action or geofence, "
+                        "SECONDS after offboard start")  # fmt: skip
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     args = parser.parse_args(argv)
+    try:
+        args.inject = [parse_injection(text, [FaultSite.RUNTIME]) for text in args.inject]
+    except InjectionError as err:
+        parser.error(str(err))
     try:
         goal = [float(v) for v in args.goal_rel_home.split(",")]
     except ValueError:
@@ -99,13 +115,15 @@ async def fly_episode(args: argparse.Namespace, summary: dict) -> EpisodeResult:
     summary["model"] = {"path": str(model.path), "hidden_size": model.hidden_size, "providers": list(model.providers)}
     log_path = args.log_dir / LOG_NAME
     try:
-        recorder = Recorder(log_path, config.recorder, metadata={"model": str(model.path), "entry": "sitl_flight"})
+        recorder = Recorder(log_path, config.recorder, metadata={**model.log_metadata(), "entry": "sitl_flight"})
     except RecorderError as err:
         raise FlightError(str(err)) from err
     summary["log"] = str(log_path)
     vehicle = Vehicle(config.vehicle)
     camera = SimCameraSource(args.camera_port)
-    loop = FlightLoop(config, model, vehicle, camera, recorder)
+    step_faults = [i for i in args.inject if i.kind in (FaultKind.INFERENCE_OVERRUN, FaultKind.NAN_ACTION)]
+    policy = FaultyPolicy(model, step_faults) if step_faults else None
+    loop = FlightLoop(config, policy or model, vehicle, camera, recorder)
     offboard_started = False
     try:
         await vehicle.connect()
@@ -123,12 +141,22 @@ async def fly_episode(args: argparse.Namespace, summary: dict) -> EpisodeResult:
         await vehicle.takeoff(args.takeoff_alt_m)
         await vehicle.wait_takeoff_done(args.takeoff_alt_m)
         offboard_started = True
-        await vehicle.start_offboard(HOVER)
-        await vehicle.wait_until(lambda s: s.flight_mode == MODE_OFFBOARD, config.vehicle.command_timeout_s, "offboard mode")
+        t_request_ns = time.monotonic_ns()
+        try:
+            await vehicle.start_offboard(HOVER)
+            await vehicle.wait_until(lambda s: s.flight_mode == MODE_OFFBOARD, config.vehicle.command_timeout_s, "offboard mode")
+        except VehicleError as err:
+            result = await _offboard_refused(loop, vehicle, err, t_request_ns)
+            summary["t_episode_start_s"] = t_request_ns / 1e9
+            _fill(summary, result)
+            await vehicle.land()
+            await vehicle.wait_disarmed()
+            log.info("landed and disarmed without flying the policy")
+            return result
         summary["t_launch_to_offboard_s"] = round(process_age_s(), 3)
         home_enu_m = vehicle.state().home_enu_m
         goal_enu_m = home_enu_m + args.goal_rel_home
-        result = await loop.fly(goal_enu_m, args.timeout_s)
+        result = await _fly_with_faults(loop, policy, args.inject, goal_enu_m, args.timeout_s, summary)
         _fill(summary, result)
         log.info("episode %s in %.2f s (%d frames, final distance %.2f m)", result.outcome, result.time_s,
                  result.frames, result.final_distance_m)  # fmt: skip
@@ -153,6 +181,49 @@ async def fly_episode(args: argparse.Namespace, summary: dict) -> EpisodeResult:
         summary["recorder"] = vars(recorder.stats).copy()
 
 
+async def _offboard_refused(loop: FlightLoop, vehicle: Vehicle, err: VehicleError, t_request_ns: int) -> EpisodeResult:
+    """The autopilot refused offboard (or never showed it): record the trip, make sure the vehicle
+    is in Hold (offboard.stop also ends MAVSDK's setpoint re-sending), fly nothing."""
+    trip = loop.watchdog.refuse_start(TripCause.OFFBOARD_REFUSED, f"offboard did not start: {err}", t_request_ns, time.monotonic_ns())
+    await vehicle.stop_offboard()
+    return EpisodeResult(
+        outcome="aborted", abort_reason=trip.cause.value, time_s=0.0, frames=0, frames_received=loop.frames_received,
+        missed_deadlines=0, bad_frames=0, step_ms={"p50": None, "p99": None, "max": None, "n": 0}, stage_ms={},
+        watchdog_trips=loop.watchdog.records(), final_distance_m=float("nan"), frames_rejected=loop.frames_rejected,
+    )  # fmt: skip
+
+
+async def _fly_with_faults(
+    loop: FlightLoop, policy: FaultyPolicy | None, injections: list[Injection], goal_enu_m: np.ndarray, timeout_s: float,
+    summary: dict,
+) -> EpisodeResult:  # fmt: skip
+    """``loop.fly`` with the runtime's injected faults armed (none: just ``loop.fly``)."""
+    t0_ns = time.monotonic_ns()
+    summary["t_episode_start_s"] = t0_ns / 1e9
+    if not injections:
+        return await loop.fly(goal_enu_m, timeout_s)
+    injected: dict[FaultKind, float] = {}
+    if policy is not None:
+        policy.start(t0_ns)
+    fence = next((i for i in injections if i.kind == FaultKind.GEOFENCE), None)
+    fence_task = None
+    if fence is not None and fence.at_s == 0.0:
+        shrink_geofence(loop.watchdog, loop.vehicle.state().pos_enu_m, goal_enu_m)
+        injected[FaultKind.GEOFENCE] = time.monotonic()
+    elif fence is not None:
+        fence_task = asyncio.create_task(shrink_geofence_at(loop.watchdog, fence.at_s, t0_ns, loop.vehicle.state))
+        fence_task.add_done_callback(log_task_failure)
+    try:
+        return await loop.fly(goal_enu_m, timeout_s)
+    finally:
+        if fence_task is not None:
+            if fence_task.done() and not fence_task.cancelled() and fence_task.exception() is None:
+                injected[FaultKind.GEOFENCE] = fence_task.result()
+            fence_task.cancel()
+        injected.update(policy.injected if policy is not None else {})
+        summary["injections"] = [{"kind": kind.value, "t_s": t_s} for kind, t_s in injected.items()]
+
+
 def _fill(summary: dict, result: EpisodeResult) -> None:
     summary.update(
         outcome=result.outcome,
@@ -166,6 +237,7 @@ def _fill(summary: dict, result: EpisodeResult) -> None:
         stage_ms=result.stage_ms,
         watchdog_trips=result.watchdog_trips,
         final_distance_m=result.final_distance_m,
+        frames_rejected=result.frames_rejected,
     )
 
 

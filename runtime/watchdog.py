@@ -2,9 +2,11 @@
 
 MAVSDK re-sends the last setpoint at 20 Hz by itself, so a stalled loop would keep the vehicle
 flying on a stale command; the watchdog checks independently of the policy task.  Trips:
-stale frame, step over its trip limit (or hung), NaN/Inf action, stale telemetry, pilot left
-offboard, depth invalid fraction above a limit for too long, geofence (horizontal distance from
-where supervision started, height band above home).
+stale frame (or only bad frames: no valid frame for as long), step over its trip limit (or
+hung), NaN/Inf action, stale telemetry, pilot left offboard, depth invalid fraction above a
+limit for too long, geofence (horizontal distance from where supervision started, height band
+above home; a goal outside it is refused when the episode starts).  Before supervision, a
+refused start (offboard refused by the autopilot) is recorded with :meth:`Watchdog.refuse_start`.
 
 Response to a trip: a zero-velocity (hover) setpoint at once, then ``offboard.stop()`` (PX4
 Hold) after ``hold_grace_s``.  Pilot left offboard: the runtime stops commanding at once and
@@ -22,6 +24,7 @@ with a fake clock.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass
@@ -42,6 +45,7 @@ _NS_PER_S = 1_000_000_000
 
 class TripCause(str, Enum):
     STALE_FRAME = "stale_frame"
+    BAD_FRAMES = "bad_frames"  # frames kept coming, but none fit to fly on
     STEP_DEADLINE = "step_deadline"
     BAD_ACTION = "bad_action"
     STALE_TELEMETRY = "stale_telemetry"
@@ -49,12 +53,14 @@ class TripCause(str, Enum):
     DEPTH_INVALID = "depth_invalid"
     GEOFENCE = "geofence"
     POLICY_ERROR = "policy_error"
+    OFFBOARD_REFUSED = "offboard_refused"
 
 
 class Response(str, Enum):
     HOVER_THEN_HOLD = "hover_then_hold"
     STOP_COMMANDING = "stop_commanding"
     ALREADY_TRIPPED = "already_tripped"
+    HOLD = "hold"  # offboard never started: nothing to hover, Hold (stay in it) at once
 
 
 @dataclass
@@ -83,9 +89,11 @@ class WatchInputs:
     """What the periodic check looks at (times: ns, CLOCK_MONOTONIC; 0 = never)."""
 
     now_ns: int
-    t_last_frame_capture_ns: int
+    t_last_frame_capture_ns: int  # the newest *valid* frame
     t_step_started_ns: int  # the step in progress (frame taken), 0 = no step running
     vehicle: VehicleState
+    frames_rejected: int = 0  # frames refused as unfit since that valid frame
+    last_rejection: str = ""  # why the last of them was refused
 
 
 class Watchdog:
@@ -124,8 +132,17 @@ class Watchdog:
     def supervising(self) -> bool:
         return self._supervising
 
+    @property
+    def start_xy_enu_m(self) -> np.ndarray:
+        """Where supervision started (local ENU x, y, m): the centre of the horizontal geofence."""
+        return self._start_xy_enu_m.copy()
+
     def records(self) -> list[dict]:
         return [t.record(self._t0_ns) for t in self.trips]
+
+    def set_geofence_radius(self, radius_m: float) -> None:
+        """Change the horizontal geofence radius (m) from now on (validated as the config is)."""
+        self.config = dataclasses.replace(self.config, geofence_radius_m=radius_m)
 
     def start(self, now_ns: int, state: VehicleState) -> None:
         """Begin supervising: offboard was entered at ``state``'s position (local ENU, m)."""
@@ -140,6 +157,32 @@ class Watchdog:
         self._hold_pending = False
         self.trips.clear()
         self.gate.open_for_policy()
+
+    async def check_goal(self, goal_enu_m: np.ndarray, now_ns: int) -> Trip | None:
+        """Right after :meth:`start`: trip (geofence) if the goal (local ENU, m) is outside the fence."""
+        dist_m = float(np.linalg.norm(np.asarray(goal_enu_m[:2], dtype=np.float64) - self._start_xy_enu_m))
+        height_m = float(goal_enu_m[2]) - self._home_z_enu_m
+        cfg = self.config
+        if dist_m > cfg.geofence_radius_m:
+            detail = f"goal {dist_m:.1f} m from start > geofence radius {cfg.geofence_radius_m:.1f} m: refused"
+        elif not cfg.altitude_min_m <= height_m <= cfg.altitude_max_m:
+            detail = (f"goal height {height_m:.2f} m above home outside [{cfg.altitude_min_m:.2f}, "
+                      f"{cfg.altitude_max_m:.2f}] m: refused")  # fmt: skip
+        else:
+            return None
+        return await self.trip(TripCause.GEOFENCE, detail, now_ns, now_ns)
+
+    def refuse_start(self, cause: TripCause, detail: str, t_request_ns: int, now_ns: int) -> Trip:
+        """Record a start that did not happen (e.g. the autopilot refused offboard) as a trip
+        with response Hold; times count from ``t_request_ns``.  The caller commands Hold."""
+        self._t0_ns = t_request_ns
+        self._supervising = False
+        self.trips.clear()
+        trip = Trip(cause, detail, now_ns, max(0.0, (now_ns - t_request_ns) / _NS_PER_MS), Response.HOLD)
+        self.trips.append(trip)
+        log.error("watchdog trip %s: %s (detected in %.1f ms) -> %s", cause.value, detail, trip.detect_ms, trip.response.value)
+        self._emit("trip", trip)
+        return trip
 
     def stop(self) -> None:
         """Stop supervising (the loop ended and commands Hold itself): mode changes are ours now."""
@@ -200,10 +243,14 @@ class Watchdog:
         t_frame_ref = max(inputs.t_last_frame_capture_ns, self._t0_ns)
         if now - t_frame_ref > frame_limit:
             age_ms = (now - inputs.t_last_frame_capture_ns) / _NS_PER_MS if inputs.t_last_frame_capture_ns else math.inf
-            return await self.trip(
-                TripCause.STALE_FRAME, f"newest frame {age_ms:.0f} ms old > {cfg.frame_stale_ms:.0f} ms",
-                t_frame_ref + frame_limit, now,
-            )  # fmt: skip
+            if inputs.frames_rejected:
+                cause, detail = TripCause.BAD_FRAMES, (
+                    f"no valid frame for {age_ms:.0f} ms > {cfg.frame_stale_ms:.0f} ms: {inputs.frames_rejected} "
+                    f"frames rejected since, the last because {inputs.last_rejection}"
+                )
+            else:
+                cause, detail = TripCause.STALE_FRAME, f"newest frame {age_ms:.0f} ms old > {cfg.frame_stale_ms:.0f} ms"
+            return await self.trip(cause, detail, t_frame_ref + frame_limit, now)
         step_limit = int(cfg.step_trip_ms * _NS_PER_MS)
         if inputs.t_step_started_ns and now - inputs.t_step_started_ns > step_limit:
             return await self.trip(

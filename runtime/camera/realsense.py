@@ -28,12 +28,26 @@ class RealSenseUnavailableError(RuntimeError):
 
 @dataclass(frozen=True)
 class RealSenseConfig:
+    """D455 stream settings (the ``[camera.realsense]`` table of the runtime config)."""
+
     width_px: int = c.CAMERA_WIDTH_PX
     height_px: int = c.CAMERA_HEIGHT_PX
     fps: int = int(c.CAMERA_RATE_HZ)
-    emitter_enabled: bool = True
+    emitter_enabled: bool = True  # IR projector; off = the paper's degraded-depth condition
     serial: str | None = None  # None = the first device found
     frame_timeout_ms: int = 1000
+
+    def __post_init__(self) -> None:
+        if self.fps != int(c.CAMERA_RATE_HZ):
+            raise ValueError(f"camera.realsense.fps={self.fps!r} is invalid: must be {int(c.CAMERA_RATE_HZ)} (the policy runs at the camera rate)")
+        aspect = c.CAMERA_WIDTH_PX / c.CAMERA_HEIGHT_PX
+        if not (self.width_px > 0 and self.height_px > 0 and abs(self.width_px / self.height_px / aspect - 1.0) < 0.01):
+            raise ValueError(
+                f"camera.realsense.width_px x height_px = {self.width_px}x{self.height_px} is invalid: must be a D455 "
+                f"mode with the contract's aspect {c.CAMERA_WIDTH_PX}:{c.CAMERA_HEIGHT_PX} (e.g. 848x480, 424x240)"
+            )
+        if self.frame_timeout_ms <= 0:
+            raise ValueError(f"camera.realsense.frame_timeout_ms={self.frame_timeout_ms!r} is invalid: must be > 0")
 
 
 def import_pyrealsense2() -> Any:

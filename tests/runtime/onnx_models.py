@@ -85,3 +85,45 @@ def step_model(
 def save(model: onnx.ModelProto, path: Path) -> Path:
     onnx.save(model, str(path))
     return path
+
+
+def recurrent_step_model(hidden_size: int = 8, action_offset: float = 0.0) -> onnx.ModelProto:
+    """A step graph whose action depends on everything replay must carry right: the goal direction
+    (state[0:3]), the previous action (state[12:15]) and the GRU state, which in turn follows the
+    images.  action = tanh(state[0:3] + hidden[0:3] + 0.5 state[12:15]) + action_offset;
+    hidden_next = 0.5 hidden + mean(depth) + mean(gray); latent = (mean(depth) + mean(gray)) x 64."""
+    inits = [
+        numpy_helper.from_array(np.array([0], np.int64), "i0"),
+        numpy_helper.from_array(np.array([3], np.int64), "i3"),
+        numpy_helper.from_array(np.array([12], np.int64), "i12"),
+        numpy_helper.from_array(np.array([15], np.int64), "i15"),
+        numpy_helper.from_array(np.array([1], np.int64), "axis1"),
+        numpy_helper.from_array(np.array([2, 3], np.int64), "axes_hw"),
+        numpy_helper.from_array(np.ones((1, c.LATENT_DIM), np.float32), "ones_latent"),
+        numpy_helper.from_array(np.full((1,), 0.5, np.float32), "half"),
+        numpy_helper.from_array(np.full((1,), action_offset, np.float32), "action_offset"),
+    ]
+    nodes = [
+        helper.make_node("Slice", [c.ONNX_INPUT_STATE, "i0", "i3", "axis1"], ["goal_dir"]),
+        helper.make_node("Slice", [c.ONNX_INPUT_STATE, "i12", "i15", "axis1"], ["prev_action"]),
+        helper.make_node("Slice", [c.ONNX_INPUT_HIDDEN, "i0", "i3", "axis1"], ["h03"]),
+        helper.make_node("Mul", ["prev_action", "half"], ["half_prev"]),
+        helper.make_node("Add", ["goal_dir", "h03"], ["pre0"]),
+        helper.make_node("Add", ["pre0", "half_prev"], ["pre1"]),
+        helper.make_node("Tanh", ["pre1"], ["tanh_pre"]),
+        helper.make_node("Add", ["tanh_pre", "action_offset"], [c.ONNX_OUTPUT_ACTION]),
+        helper.make_node("ReduceMean", [c.ONNX_INPUT_DEPTH, "axes_hw"], ["depth_mean"], keepdims=0),
+        helper.make_node("ReduceMean", [c.ONNX_INPUT_GRAY, "axes_hw"], ["gray_mean"], keepdims=0),
+        helper.make_node("Add", ["depth_mean", "gray_mean"], ["img_mean"]),
+        helper.make_node("Mul", [c.ONNX_INPUT_HIDDEN, "half"], ["half_hidden"]),
+        helper.make_node("Add", ["half_hidden", "img_mean"], [c.ONNX_OUTPUT_HIDDEN]),
+        helper.make_node("Mul", ["img_mean", "ones_latent"], [c.ONNX_OUTPUT_LATENT]),
+    ]
+    in_infos = [helper.make_tensor_value_info(n, t, s) for n, s, t in default_inputs(hidden_size)]
+    out_infos = [helper.make_tensor_value_info(n, t, s) for n, s, t in default_outputs(hidden_size)]
+    graph = helper.make_graph(nodes, "recurrent_test_step", in_infos, out_infos, inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+    model.ir_version = 8
+    helper.set_model_props(model, contract_metadata())
+    onnx.checker.check_model(model)
+    return model

@@ -139,7 +139,7 @@ def test_reaches_goal_then_hover_and_hold(goal_seeker, tmp_path):
 
 
 def test_camera_stops_trips_and_holds(goal_seeker):
-    goal = START + np.array([30.0, 0.0, 0.0])
+    goal = START + np.array([15.0, 0.0, 0.0])  # inside the 20 m geofence, never reached
     result, vehicle = asyncio.run(_fly(goal_seeker, goal, 20.0, camera=FakeCamera(stop_after_s=0.6)))
     assert result.outcome == "aborted" and result.abort_reason == "stale_frame"
     (trip,) = result.watchdog_trips
@@ -160,7 +160,7 @@ def test_pilot_takeover_stops_commanding(goal_seeker):
         await asyncio.sleep(0.5)
         vehicle.pilot_switches_to("POSCTL")
 
-    goal = START + np.array([30.0, 0.0, 0.0])
+    goal = START + np.array([15.0, 0.0, 0.0])  # inside the 20 m geofence, never reached
     result, vehicle = asyncio.run(_fly(goal_seeker, goal, 20.0, during=take_over))
     assert result.outcome == "aborted" and result.abort_reason == "pilot_left_offboard"
     assert result.watchdog_trips[0]["response"] == "stop_commanding"
@@ -170,7 +170,37 @@ def test_pilot_takeover_stops_commanding(goal_seeker):
 
 
 def test_timeout_hovers_then_holds(goal_seeker):
-    result, vehicle = asyncio.run(_fly(goal_seeker, START + np.array([30.0, 0, 0]), 0.8))
+    result, vehicle = asyncio.run(_fly(goal_seeker, START + np.array([15.0, 0, 0]), 0.8))
     assert result.outcome == "timeout" and result.watchdog_trips == []
     assert result.time_s == pytest.approx(0.8, abs=0.2)
+    assert vehicle.setpoints[-1] == HOVER and vehicle.holds == 1
+
+
+class GarbageCamera(FakeCamera):
+    """Good frames for ``good_s``, then garbage: negative depth, another resolution, in turn."""
+
+    def __init__(self, good_s: float):
+        super().__init__()
+        self.good_s = good_s
+
+    async def frames(self):
+        t0 = time.monotonic()
+        seq = 0
+        while True:
+            seq += 1
+            if time.monotonic() - t0 < self.good_s:
+                depth = np.full((120, 212), 3.0, np.float32)
+            else:
+                depth = np.full((120, 212), -1.0, np.float32) if seq % 2 else np.full((60, 70), 3.0, np.float32)
+            yield Frame(time.monotonic_ns(), depth, np.full(depth.shape, 128, np.uint8), seq)
+            await asyncio.sleep(CONTROL_PERIOD_S)
+
+
+def test_garbage_frames_are_counted_never_flown_on_and_trip(goal_seeker):
+    goal = START + np.array([15.0, 0.0, 0.0])  # inside the 20 m geofence, never reached
+    result, vehicle = asyncio.run(_fly(goal_seeker, goal, 20.0, camera=GarbageCamera(good_s=0.6)))
+    assert result.outcome == "aborted" and result.abort_reason == "bad_frames"
+    (trip,) = result.watchdog_trips
+    assert "frames rejected since" in trip["detail"] and trip["response"] == "hover_then_hold"
+    assert result.frames_rejected >= 3 and result.bad_frames == 0
     assert vehicle.setpoints[-1] == HOVER and vehicle.holds == 1

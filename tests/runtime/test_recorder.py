@@ -17,6 +17,8 @@ from mcap_protobuf.decoder import DecoderFactory
 from runtime.camera import Frame
 from runtime.config import RecorderConfig
 from runtime.contract import action_to_mavsdk, action_to_velocity_flu
+from runtime.model import StepOutput
+from runtime.policy_step import StepInputs, StepResult
 from runtime.recorder import (
     TOPIC_ACTION, TOPIC_COMMAND, TOPIC_DEPTH, TOPIC_GRAY, TOPIC_LATENT, TOPIC_OBSERVATION, TOPIC_STATE,
     TOPIC_TIMING, TOPIC_WATCHDOG, Recorder, RecorderError,
@@ -47,7 +49,13 @@ def _log_one_step(rec: Recorder, seq: int, t_ns: int) -> None:
     rec.log_frame(frame)
     rec.log_state(t_ns, VehicleState(pos_enu_m=np.array([1.0, 2.0, 3.0]), t_posvel_ns=t_ns, flight_mode="OFFBOARD"))
     action = np.array([0.5, np.nan, -0.2])
-    rec.log_step(frame, np.arange(79, dtype=np.float32), action, np.clip(action, -1, 1), np.ones(64, np.float32))
+    inputs = StepInputs(
+        pos_enu_m=np.array([1.0, 2.0, 3.0]), quat_enu_flu=np.array([1.0, 0, 0, 0]), vel_body_flu_m_s=np.zeros(3),
+        angvel_body_flu_rad_s=np.zeros(3), goal_enu_m=np.array([9.0, 2.0, 3.0]), hidden=np.zeros(8, np.float32),
+        prev_action=np.zeros(3, np.float32), hidden_epoch=1,
+    )  # fmt: skip
+    output = StepOutput(action=action, hidden_next=np.zeros(8, np.float32), latent=np.ones(64, np.float32))
+    rec.log_step(frame, StepResult(inputs, np.arange(15, dtype=np.float32), output, np.clip(action, -1, 1), 0, 0, 0))
     clean = np.array([0.5, 0.1, -0.2])
     rec.log_command(t_ns, frame, action_to_velocity_flu(clean), action_to_mavsdk(clean), "policy", True)
     rec.log_timing(frame, {"preprocess": 1.5, "inference": 2.25, "step": 4.0}, missed_deadline=False)
@@ -87,7 +95,9 @@ def test_every_channel_reads_back(tmp_path):
 
     action = messages[TOPIC_ACTION][0][1]
     assert action["raw"] == [0.5, None, -0.2] and action["frame_seq"] == 1
-    assert len(messages[TOPIC_OBSERVATION][0][1]["observation"]) == 79
+    observation = messages[TOPIC_OBSERVATION][0][1]
+    assert len(observation["observation"]) == 79 and observation["observation"][15:] == [1.0] * 64
+    assert observation["hidden_epoch"] == 1 and observation["goal_enu_m"] == [9.0, 2.0, 3.0]
     assert len(messages[TOPIC_LATENT][0][1]["latent"]) == 64
     command = messages[TOPIC_COMMAND][0][1]
     assert command["source"] == "policy" and command["yawspeed_deg_s"] == pytest.approx(12.0)

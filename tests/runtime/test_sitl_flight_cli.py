@@ -36,3 +36,9 @@ def test_bad_goal_argument_is_named(tmp_path):
     proc = _run(*_args(tmp_path, tmp_path / "m.onnx", goal="9,1"))
     assert proc.returncode == 2
     assert "--goal-rel-home '9,1': expected three numbers" in proc.stderr
+
+
+def test_vehicle_faults_are_not_injected_by_the_runtime(tmp_path):
+    proc = _run(*_args(tmp_path, tmp_path / "m.onnx"), "--inject", "camera-stall@2")
+    assert proc.returncode == 2
+    assert "unknown fault kind 'camera-stall' here; expected one of geofence, inference-overrun, nan-action" in proc.stderr

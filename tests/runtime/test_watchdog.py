@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from runtime.command_gate import CommandGate
-from runtime.config import WatchdogConfig
+from runtime.config import ConfigError, WatchdogConfig
 from runtime.contract import HOVER, VelocityBodyYawspeed
 from runtime.vehicle import VehicleState
 from runtime.watchdog import Response, TripCause, WatchInputs, Watchdog
@@ -264,3 +264,56 @@ def test_start_needs_position_and_home():
     rig = Rig()
     with pytest.raises(ValueError, match="home position"):
         rig.watchdog.start(T0, dataclasses.replace(_state(T0), home_enu_m=None))
+
+
+def test_only_rejected_frames_trip_as_bad_frames():
+    async def main():
+        rig = Rig()
+        last_valid = T0 + 100 * MS
+        inputs = dataclasses.replace(rig.inputs(T0 + 360 * MS, frame_ns=last_valid), frames_rejected=4,
+                                     last_rejection="capture time 10.000 s in the future")  # fmt: skip
+        trip = await rig.watchdog.tick(inputs)
+        assert trip.cause == TripCause.BAD_FRAMES and trip.detect_ms == pytest.approx(10.0)
+        assert "4 frames rejected" in trip.detail and "in the future" in trip.detail
+        _assert_hover_then_hold(rig, trip, T0 + 360 * MS)
+
+    run(main())
+
+
+@pytest.mark.parametrize("goal, detail", [((12.0, 2.0, 1.5), "from start"), ((1.0, 2.0, 7.0), "goal height")])
+def test_goal_outside_the_geofence_is_refused_at_start(goal, detail):
+    async def main():
+        rig = Rig()
+        assert await rig.watchdog.check_goal(np.array([9.0, 5.0, 1.5]), T0) is None  # inside
+        trip = await rig.watchdog.check_goal(np.array(goal), T0 + 1 * MS)
+        assert trip.cause == TripCause.GEOFENCE and detail in trip.detail and "refused" in trip.detail
+        _assert_hover_then_hold(rig, trip, T0 + 1 * MS)
+        await _finish_grace(rig, T0 + 1 * MS)
+
+    run(main())
+
+
+def test_shrunk_geofence_trips_on_the_next_position():
+    async def main():
+        rig = Rig()
+        pos = np.array([3.0, 2.0, 1.5])  # 2 m from the start (1, 2)
+        assert await rig.tick(T0 + 100 * MS, pos_enu_m=pos) is None
+        rig.watchdog.set_geofence_radius(1.0)
+        trip = await rig.tick(T0 + 120 * MS, pos_enu_m=pos, t_posvel_ns=T0 + 115 * MS)
+        assert trip.cause == TripCause.GEOFENCE and "> 1.0 m" in trip.detail
+        np.testing.assert_array_equal(rig.watchdog.start_xy_enu_m, [1.0, 2.0])
+        with pytest.raises(ConfigError, match="watchdog.geofence_radius_m"):
+            rig.watchdog.set_geofence_radius(0.0)
+
+    run(main())
+
+
+def test_refused_start_is_recorded_without_commanding():
+    rig = Rig()
+    t_request = T0 + 5_000 * MS
+    trip = rig.watchdog.refuse_start(TripCause.OFFBOARD_REFUSED, "offboard denied", t_request, t_request + 42 * MS)
+    assert trip.response == Response.HOLD and trip.detect_ms == pytest.approx(42.0)
+    assert rig.watchdog.records() == [{"cause": "offboard_refused", "detail": "offboard denied", "t_s": 0.042,
+                                       "detect_ms": 42.0, "response": "hold", "hold_t_s": None}]  # fmt: skip
+    assert rig.vehicle.calls == [] and not rig.watchdog.supervising
+    assert [e["event"] for e in rig.events] == ["trip"]

@@ -22,6 +22,7 @@ def test_required_settings():
     assert service["Type"] == "notify"
     assert service["WatchdogSec"]
     assert service["Restart"] == "on-failure"
+    assert service["RestartPreventExitStatus"] == "2"  # cmnav fly: bad config or model, a restart cannot help
     assert service["User"] == "cmnav"
     assert "plugdev" in service["SupplementaryGroups"]
     for key in ("NoNewPrivileges", "ProtectHome", "PrivateTmp"):

@@ -1,0 +1,321 @@
+"""``cmnav fly --config FILE.toml``: the field program, what systemd runs on the Jetson.
+
+Start-up, in this order, so that a bad config or model never reaches the vehicle: load and
+validate the config (``runtime.config_loader``), load the model on its execution providers, then
+connect to the autopilot, start the camera, wait for health (armable, local position, home) and
+a first frame, and tell systemd READY.
+
+Then, by default (``mission.allow_arm_takeoff = false``) the runtime never arms or takes off: it
+streams a hover setpoint (PX4 accepts offboard only with setpoints already streaming) and waits
+for the pilot to arm, take off and switch to offboard — a switch *into* offboard it has seen, not
+a vehicle that was already there.  It then flies an episode toward the goal (relative to home,
+the take-off point; the GRU state resets on entering offboard), commands hover then Hold, and
+waits for the next switch to offboard (``mission.max_episodes``, 0 = until stopped).  If the pilot
+leaves offboard mid-episode the runtime stops commanding at once.  With ``allow_arm_takeoff =
+true`` (SITL dry runs) it arms, takes off, enters offboard itself, flies one episode, lands and exits.
+
+One MCAP log per episode in ``recorder.log_dir`` (rotated: ``recorder.max_logs`` /
+``max_total_gb``).  systemd (``Type=notify``): READY after start-up, a STATUS line per phase, and
+WATCHDOG pings from the flight loop's healthy iterations (and from the waiting phases while the
+event loop runs), so a stalled loop is killed and restarted.
+
+Exit codes: 0 done (episodes flown, a dry run that reached its goal, or stopped by SIGTERM/SIGINT
+— hover then Hold first if flying); 1 a failure that a restart may cure (no autopilot or camera
+yet, a dry run that did not reach the goal); 2 a failure a restart cannot cure (config, model,
+log directory): the unit's ``RestartPreventExitStatus=2`` keeps systemd from retrying it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import json
+import logging
+import os
+import signal
+from pathlib import Path
+from typing import Awaitable, TypeVar
+
+import numpy as np
+
+from .camera import CameraSource
+from .camera.realsense import RealSenseSource, RealSenseUnavailableError
+from .camera.replay_source import ReplayCameraSource
+from .camera.sim_source import SimCameraSource
+from .config import CameraConfig, RuntimeConfig
+from .config_loader import ConfigError, load_config
+from .contract import HOVER, ContractMismatchError
+from .flight import EpisodeResult, FlightLoop
+from .log_reader import ReplayError
+from .log_rotation import new_log_path, rotate_logs
+from .model import ModelLoadError, PolicyModel, resolve_providers
+from .recorder import Recorder, RecorderError
+from .sdnotify import SystemdNotifier
+from .vehicle import MODE_OFFBOARD, Vehicle, VehicleError, VehicleState
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_CONFIG = 2
+# While waiting for the pilot: check the vehicle state and send a hover setpoint this often.  PX4
+# accepts offboard only with setpoints streaming (> 2 Hz), and MAVSDK stops its own 20 Hz
+# re-sending at the first HEARTBEAT that shows another mode, so the runtime streams them itself.
+PILOT_POLL_S = 0.1
+ALIVE_PERIOD_S = 0.25  # how often the waiting phases report the event loop alive
+
+
+class FlyError(RuntimeError):
+    """``cmnav fly`` cannot go on; ``exit_code`` says whether a restart may help (1) or not (2)."""
+
+    def __init__(self, exit_code: int, message: str) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
+def load_model(config: RuntimeConfig) -> PolicyModel:
+    """The configured model on the configured execution providers; :class:`FlyError` (exit 2) if
+    it is refused (not loadable, wrong signature or contract, provider unavailable)."""
+    policy = config.policy
+    try:
+        providers = resolve_providers(policy.providers, policy.provider_fallback)
+        return PolicyModel(policy.model_path, providers, policy.intra_op_threads)
+    except (ModelLoadError, ContractMismatchError) as err:
+        raise FlyError(EXIT_CONFIG, f"model refused, nothing armed: {err}") from err
+
+
+def make_camera(config: CameraConfig) -> CameraSource:
+    """The configured camera source (not started)."""
+    if config.source == "realsense":
+        return RealSenseSource(config.realsense)
+    if config.source == "sim":
+        return SimCameraSource(config.sim.port)
+    assert config.replay.path is not None  # CameraConfig checks it
+    return ReplayCameraSource(config.replay.path)
+
+
+class FieldProgram:
+    """One ``cmnav fly`` run: start-up, then pilot-driven episodes or a dry run."""
+
+    def __init__(self, config: RuntimeConfig, notifier: SystemdNotifier) -> None:
+        self.config = config
+        self.notifier = notifier
+        self.summary: dict = {"episodes": [], "logs": [], "error": None}
+        self._in_offboard = False  # an episode (or the dry run's offboard phase) is under way
+
+    async def run(self) -> int:
+        """Everything from model load to exit; returns the exit code (see the module docstring)."""
+        # In a worker thread: building a TensorRT engine can take minutes, and systemd's watchdog
+        # may already be counting.
+        model = await self._alive_while(asyncio.get_running_loop().run_in_executor(None, load_model, self.config))
+        self.summary["model"] = model.log_metadata()
+        log_dir = self.config.recorder.log_dir
+        if log_dir is not None:
+            try:
+                log_dir.mkdir(parents=True, exist_ok=True)
+            except OSError as err:
+                raise FlyError(EXIT_CONFIG, f"recorder.log_dir {log_dir} cannot be created: {err}") from err
+            if not os.access(log_dir, os.W_OK | os.X_OK):
+                raise FlyError(EXIT_CONFIG, f"recorder.log_dir {log_dir} is not writable by this user: "
+                                            "chown it to the service user (see systemd/README.md)")  # fmt: skip
+        try:
+            camera = make_camera(self.config.camera)
+        except ReplayError as err:
+            raise FlyError(EXIT_CONFIG, f"camera.replay.path: {err}") from err
+        vehicle = Vehicle(self.config.vehicle)
+        loop = FlightLoop(self.config, model, vehicle, camera, recorder=None, on_alive=self.notifier.loop_alive)
+        try:
+            await self._start(vehicle, loop)
+            if self.config.mission.allow_arm_takeoff:
+                return await self._dry_run(vehicle, loop, model)
+            return await self._pilot_episodes(vehicle, loop, model)
+        except VehicleError as err:
+            raise FlyError(EXIT_FAILED, f"vehicle: {err}") from err
+        except (RealSenseUnavailableError, ReplayError) as err:
+            raise FlyError(EXIT_FAILED, f"camera: {err}") from err
+        except asyncio.CancelledError:
+            if self._in_offboard:
+                log.warning("stopping in flight: hover, then Hold")
+                await loop.safe_stop()
+            raise
+        finally:
+            await loop.close()
+            await vehicle.close()
+
+    # ------------------------------------------------------------------ start-up
+
+    async def _start(self, vehicle: Vehicle, loop: FlightLoop) -> None:
+        self._status(f"connecting to the autopilot on {self.config.vehicle.url}")
+        await self._alive_while(vehicle.connect())
+        await loop.start()
+        self._status("waiting for autopilot health (armable, local position, home)")
+        await self._alive_while(vehicle.wait_ready())
+        self._status(f"waiting for the first {self.config.camera.source} camera frame")
+        timeout_s = self.config.camera.first_frame_timeout_s
+        try:
+            await self._alive_while(loop.wait_first_frame(timeout_s))
+        except asyncio.TimeoutError as err:
+            raise FlyError(EXIT_FAILED, f"no {self.config.camera.source} camera frame within {timeout_s} s: is the camera connected and streaming?") from err
+        self.notifier.ready("started: connected, healthy, camera streaming")
+        log.info("started: connected, healthy, camera streaming")
+
+    # ------------------------------------------------------------------ the two ways to fly
+
+    async def _pilot_episodes(self, vehicle: Vehicle, loop: FlightLoop, model: PolicyModel) -> int:
+        """Wait for the pilot's switch to offboard, fly, repeat (``mission.max_episodes``)."""
+        max_episodes = self.config.mission.max_episodes
+        episode = 0
+        while max_episodes == 0 or episode < max_episodes:
+            episode += 1
+            state = await self._wait_for_offboard(vehicle, episode)
+            await self._episode(loop, model, episode, state)
+        return EXIT_OK
+
+    async def _dry_run(self, vehicle: Vehicle, loop: FlightLoop, model: PolicyModel) -> int:
+        """Arm, take off, enter offboard, fly one episode, land (``mission.allow_arm_takeoff``)."""
+        altitude_m = self.config.mission.takeoff_alt_m
+        self._status(f"dry run: arming and taking off to {altitude_m:.2f} m")
+        await vehicle.arm()
+        await vehicle.takeoff(altitude_m)
+        await self._alive_while(vehicle.wait_takeoff_done(altitude_m))
+        self._in_offboard = True
+        await vehicle.start_offboard(HOVER)
+        state = await self._alive_while(
+            vehicle.wait_until(lambda s: s.flight_mode == MODE_OFFBOARD, self.config.vehicle.command_timeout_s, "offboard mode")
+        )
+        result = await self._episode(loop, model, 1, state)
+        if loop.watchdog.pilot_took_over:
+            log.warning("the pilot took over: not landing, the vehicle is theirs")
+            return EXIT_FAILED
+        self._status("dry run: landing")
+        await vehicle.land()
+        await self._alive_while(vehicle.wait_disarmed())
+        log.info("landed and disarmed")
+        return EXIT_OK if result.outcome == "success" else EXIT_FAILED
+
+    async def _wait_for_offboard(self, vehicle: Vehicle, episode: int) -> VehicleState:
+        """Stream hover setpoints and wait until the pilot switches *into* offboard, armed and in the air."""
+        seen_outside = False
+        last_status = ""
+        while True:
+            await vehicle.set_velocity_body(HOVER)  # ignored outside offboard; lets the pilot select it
+            state = vehicle.state()
+            if state.flight_mode != MODE_OFFBOARD:
+                seen_outside = True
+            elif seen_outside and state.armed and state.in_air:
+                log.info("the pilot switched to offboard: episode %d", episode)
+                return state
+            if not seen_outside:
+                status = "the vehicle is already in offboard: switch out of it and back to hand it to cmnav"
+            else:
+                status = (f"episode {episode}: waiting for the pilot to arm, take off and switch to offboard "
+                          f"(armed {state.armed}, in air {state.in_air}, mode {state.flight_mode})")  # fmt: skip
+            if status != last_status:
+                self._status(status)
+                last_status = status
+            self.notifier.loop_alive()
+            await asyncio.sleep(PILOT_POLL_S)
+
+    async def _episode(self, loop: FlightLoop, model: PolicyModel, episode: int, state: VehicleState) -> EpisodeResult:
+        """One offboard episode toward the goal (relative to home), recorded to its own log."""
+        assert state.home_enu_m is not None and self.config.mission.goal_rel_home_enu_m is not None
+        goal_enu_m = state.home_enu_m + np.asarray(self.config.mission.goal_rel_home_enu_m)
+        recorder = self._open_recorder(model, episode)
+        loop.recorder = recorder
+        self._in_offboard = True
+        self._status(f"episode {episode}: flying to the goal {np.round(goal_enu_m - state.home_enu_m, 2).tolist()} m from home")
+        try:
+            result = await loop.fly(goal_enu_m, self.config.mission.episode_timeout_s)
+        finally:
+            self._in_offboard = False
+            loop.recorder = None
+            if recorder is not None:
+                await asyncio.get_running_loop().run_in_executor(None, recorder.close)
+        record = dataclasses.asdict(result)
+        record.update(episode=episode, log=str(recorder.path) if recorder else None)
+        self.summary["episodes"].append(record)
+        log.info("episode %d: %s in %.2f s (%d steps, final distance %.2f m, trips %s)", episode, result.outcome,
+                 result.time_s, result.frames, result.final_distance_m, [t["cause"] for t in result.watchdog_trips])  # fmt: skip
+        self.notifier.status(f"episode {episode}: {result.outcome}" + (f" ({result.abort_reason})" if result.abort_reason else ""))
+        return result
+
+    def _open_recorder(self, model: PolicyModel, episode: int) -> Recorder | None:
+        cfg = self.config.recorder
+        if cfg.log_dir is None:
+            return None
+        try:
+            rotate_logs(cfg.log_dir, cfg.max_logs, cfg.max_total_gb)
+            path = new_log_path(cfg.log_dir, episode)
+            recorder = Recorder(path, cfg, metadata={**model.log_metadata(), "entry": "fly", "episode": str(episode)})
+        except (OSError, RecorderError) as err:
+            # Flying unrecorded beats not flying once the pilot has handed over the vehicle.
+            log.error("episode %d is not recorded: %s", episode, err)
+            return None
+        self.summary["logs"].append(str(path))
+        return recorder
+
+    # ------------------------------------------------------------------ helpers
+
+    def _status(self, text: str) -> None:
+        log.info("%s", text)
+        self.notifier.status(text)
+
+    async def _alive_while(self, awaitable: Awaitable[T]) -> T:
+        """Await ``awaitable`` (which has its own timeout) while reporting the event loop alive."""
+        task = asyncio.ensure_future(awaitable)
+        try:
+            while not task.done():
+                self.notifier.loop_alive()
+                await asyncio.wait({task}, timeout=ALIVE_PERIOD_S)
+            return task.result()
+        finally:
+            task.cancel()  # nothing when done; stops the inner wait when we are cancelled
+
+
+async def _main(program: FieldProgram) -> int:
+    task = asyncio.current_task()
+    assert task is not None
+    loop = asyncio.get_running_loop()
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(signum, task.cancel)
+    try:
+        return await program.run()
+    except FlyError as err:
+        log.error("%s", err)
+        program.summary["error"] = str(err)
+        return err.exit_code
+    except asyncio.CancelledError:
+        log.warning("stopped by a signal")
+        program.summary["error"] = "stopped by a signal"
+        return EXIT_OK
+
+
+def run_fly(config_path: str | Path, print_json: bool = False, check_only: bool = False) -> int:
+    """Entry of ``cmnav fly``: returns the exit code; with ``print_json`` the summary (episodes,
+    logs, error) is printed as one JSON line on stdout at exit.  ``check_only``: validate the
+    config and load the model, then exit (0 or 2) without touching the vehicle or camera."""
+    try:
+        config = load_config(config_path)
+        if check_only:
+            model = load_model(config)
+    except (ConfigError, FlyError) as err:
+        log.error("config %s refused, nothing started: %s", config_path, err)
+        if print_json:
+            print(json.dumps({"episodes": [], "logs": [], "error": f"config: {err}"}))
+        return EXIT_CONFIG
+    if check_only:
+        print(f"{config_path}: config valid; model {model.path} loads on {list(model.providers)} "
+              f"(sha256 {model.sha256}); goal {list(config.mission.goal_rel_home_enu_m or ())} m from home")  # fmt: skip
+        return EXIT_OK
+    notifier = SystemdNotifier() if config.systemd.notify else SystemdNotifier({})
+    program = FieldProgram(config, notifier)
+    try:
+        code = asyncio.run(_main(program))
+    finally:
+        notifier.stopping()
+        notifier.close()
+    if print_json:
+        print(json.dumps(program.summary, default=str))
+    return code

@@ -115,6 +115,9 @@ def build_parser() -> argparse.ArgumentParser:
     sitl.add_argument("--timeout", type=float, default=60.0, help="flight time limit in offboard, seconds (default 60)")
     sitl.add_argument("--out", default="runs/sitl", help="directory for the log, plot and summaries (default runs/sitl)")
     sitl.add_argument("--json", action="store_true", help="print the summary as one JSON object on the last line")
+    sitl.add_argument("--degrade", default="none", choices=["none", "projector-off"],
+                      help="depth degradation of the SITL camera (projector-off: a D455 without its IR projector, "
+                      "about a quarter of the depth lost)")  # fmt: skip
     sitl.add_argument(
         "--inject", action="append", default=[], metavar="KIND@SECONDS",
         help="inject a fault SECONDS after offboard start (repeatable): camera-stall, camera-garbage, "

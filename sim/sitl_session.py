@@ -61,6 +61,7 @@ class SitlRequest:
     timeout_s: float
     out_dir: Path
     injections: tuple[Injection, ...] = ()
+    degrade: str = "none"
 
     def injections_at(self, site: FaultSite) -> list[str]:
         """``--inject`` arguments for the process at ``site``."""
@@ -143,7 +144,7 @@ def run_sitl(request: SitlRequest) -> dict:
     with open(sim_log, "w") as sim_out:
         vehicle = subprocess.Popen(
             [sys.executable, "-m", "sim.sitl", "--mavlink-port", str(mavlink_port), "--camera-port", str(camera_port),
-             "--level", str(request.level), "--seed", str(request.seed),
+             "--level", str(request.level), "--seed", str(request.seed), "--degrade", request.degrade,
              "--episode-json", str(episode_path), "--trace", str(trace_path), "--status-json", str(status_path),
              *request.injections_at(FaultSite.VEHICLE)],
             stdout=sim_out, stderr=subprocess.STDOUT, env=env,
@@ -290,7 +291,7 @@ def run_sitl_cli(args: argparse.Namespace) -> int:
     except InjectionError as err:
         print(f"cmnav sitl: {err}", file=sys.stderr)
         return 2
-    request = SitlRequest(Path(args.model), args.level, args.seed, args.timeout, Path(args.out), injections)
+    request = SitlRequest(Path(args.model), args.level, args.seed, args.timeout, Path(args.out), injections, args.degrade)
     try:
         summary = run_sitl(request)
     except SitlError as err:

@@ -9,12 +9,13 @@ from typing import TextIO
 
 
 class Progress:
-    def __init__(self, total: int, desc: str, unit: str = "it", stream: TextIO | None = None, every_s: float = 5.0) -> None:
+    def __init__(self, total: int, desc: str, unit: str = "it", stream: TextIO | None = None, every_s: float = 5.0,
+                 initial: int = 0) -> None:
         self.total, self.desc, self.unit = total, desc, unit
         self.stream = stream if stream is not None else sys.stderr
         self.tty = self.stream.isatty()
         self.every_s = 0.2 if self.tty else every_s
-        self.count = 0
+        self.count = self.initial = initial  # initial: work already done (a resumed run)
         self.t0 = time.monotonic()
         self._last_draw = float("-inf")
         self._drawn_count = -1
@@ -31,7 +32,7 @@ class Progress:
     def _draw(self, now: float) -> None:
         self._drawn_count = self.count
         elapsed = max(now - self.t0, 1e-9)
-        rate = self.count / elapsed
+        rate = (self.count - self.initial) / elapsed
         eta = (self.total - self.count) / rate if rate > 0 else float("inf")
         extra = " ".join(f"{k}={v}" for k, v in self.values.items())
         line = (f"{self.desc}: {self.count}/{self.total} {self.unit} ({100.0 * self.count / max(self.total, 1):.0f}%) "

@@ -35,13 +35,15 @@ def parse_args(argv: list[str] | None = None) -> SitlConfig:
     parser.add_argument("--inject", action="append", default=[], metavar="KIND@SECONDS",
                         help="inject a fault SECONDS after this vehicle first enters OFFBOARD (repeatable; kinds: "
                         "camera-stall, camera-garbage, camera-blackout, telemetry-loss, pilot-takeover, offboard-refused@0)")  # fmt: skip
+    parser.add_argument("--degrade", default="none", choices=["none", "projector-off"],
+                        help="depth degradation of the served frames (projector-off: a D455 without its IR projector)")
     parser.add_argument("--status-json", type=Path, help="keep the mode log here, rewritten at every mode change")
     args = parser.parse_args(argv)
     try:
         injections = tuple(parse_injection(text, [FaultSite.VEHICLE]) for text in args.inject)
         config = SitlConfig(
             args.mavlink_port, args.camera_port, args.level, args.seed, args.episode_json, args.trace,
-            args.physics_hz, args.camera_hz, injections, args.status_json,
+            args.physics_hz, args.camera_hz, injections, args.status_json, args.degrade,
         )  # fmt: skip
         config.validate()
     except ValueError as err:  # InjectionError is one

@@ -17,6 +17,7 @@ import torch
 from runtime.camera.frame import Frame
 from runtime.contract.images import invalid_depth_fraction
 from sim.camera import CameraModel, camera_pose
+from sim.degradation import ProjectorOffModel
 from sim.render import render
 from sim.world import WorldBatch
 
@@ -36,7 +37,11 @@ class CameraFeed:
         pose_source: Callable[[], Kinematics],
         publish: Callable[[Frame], None],
         rate_hz: float,
+        degradation: ProjectorOffModel | None = None,
+        seed: int = 0,
     ) -> None:
+        """``degradation``: depth loss applied to every frame (None: clean depth), drawn from a
+        generator seeded with ``seed`` so a seed replays the same losses."""
         if world.batch_size != 1:
             raise ValueError(f"the camera feed renders one world, got a batch of {world.batch_size}")
         if not rate_hz > 0.0:
@@ -47,6 +52,8 @@ class CameraFeed:
         self._publish = publish
         self._period_s = 1.0 / rate_hz
         self._seq = 0
+        self._degradation = degradation
+        self._generator = torch.Generator().manual_seed(seed)
         self.skipped_deadlines = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="camera-render", daemon=True)
@@ -59,7 +66,10 @@ class CameraFeed:
         cam_pos, cam_quat = camera_pose(pos, quat, self._camera)
         with torch.no_grad():
             out = render(self._world, cam_pos, cam_quat, self._camera)
-        depth_m = np.ascontiguousarray(out.depth_m[0].numpy(), dtype=np.float32)
+        depth = out.depth_m
+        if self._degradation is not None:
+            depth, _ = self._degradation.apply(depth, out.gray_u8, self._camera.fx_px, self._generator)
+        depth_m = np.ascontiguousarray(depth[0].numpy(), dtype=np.float32)
         gray_u8 = np.ascontiguousarray(out.gray_u8[0].numpy(), dtype=np.uint8)
         frame = Frame(
             t_capture_ns=t_capture_ns,

@@ -22,6 +22,7 @@ import torch
 from runtime.camera.frame import Frame
 from runtime.faults import Injection
 from sim.camera import CameraModel
+from sim.degradation import ProjectorOffModel
 from sim.world import make_worlds
 
 from .airframe import Airframe
@@ -39,6 +40,9 @@ from .streams import StreamScheduler
 from .telemetry import Telemetry
 
 log = logging.getLogger(__name__)
+
+# Depth degradation of the served frames: the D455 with its projector off, or none.
+DEGRADATIONS: dict[str, ProjectorOffModel | None] = {"none": None, "projector-off": ProjectorOffModel()}
 
 MAX_LAG_S = 0.25
 
@@ -59,9 +63,12 @@ class SitlConfig:
     camera_hz: float = 15.0
     injections: tuple[Injection, ...] = ()
     status_json: Path | None = None
+    degrade: str = "none"  # one of DEGRADATIONS
 
     def validate(self) -> None:
         """Raise ValueError naming the bad option."""
+        if self.degrade not in DEGRADATIONS:
+            raise ValueError(f"--degrade {self.degrade!r} must be one of {sorted(DEGRADATIONS)}")
         if self.level < 0:
             raise ValueError(f"--level {self.level} must be >= 0")
         if not 10.0 <= self.physics_hz <= 1000.0:
@@ -110,7 +117,8 @@ class SitlVehicle:
         # The render thread reads self._kin: it is replaced each tick, never mutated, so the
         # reference it gets is always one consistent state.
         publish = self._publish_faulty if self._faults.camera_faults else self._server.publish
-        self._feed = CameraFeed(self._world, CameraModel(), lambda: self._kin, publish, config.camera_hz)
+        self._feed = CameraFeed(self._world, CameraModel(), lambda: self._kin, publish, config.camera_hz,
+                                DEGRADATIONS[config.degrade], seed=config.seed)  # fmt: skip
         self.overruns = 0
 
     def run(self, stop: threading.Event) -> None:

@@ -55,3 +55,12 @@ def test_goal_seeker_reaches_the_goal_at_level_0(goal_seeker, tmp_path):
     assert expected <= topics, f"missing channels: {expected - topics}"
     for topic in expected - {"/watchdog"}:
         assert counts.get(topic, 0) > 10, f"{topic}: {counts.get(topic, 0)} messages"
+
+
+def test_projector_off_degrades_the_served_depth(goal_seeker, tmp_path):
+    code, summary, stderr = _sitl(goal_seeker, tmp_path, "--level", "0", "--seed", "2", "--timeout", "40",
+                                  "--degrade", "projector-off")  # fmt: skip
+    assert code == 0, f"exit {code}; summary {summary}; stderr:\n{stderr[-3000:]}"
+    invalid = summary["invalid_depth_pct"]
+    # The goal-seeker ignores the camera, so it still arrives; the depth it was served lost some pixels.
+    assert 5.0 < invalid["avg"] < 60.0 and invalid["min"] <= invalid["avg"] <= invalid["max"]

@@ -126,9 +126,8 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
         log.warning("--resume: no training state in %s, starting from scratch", out)
     ddp_model = DistributedDataParallel(model) if info.enabled else model
     writer = ScalarWriter(out / "tensorboard") if info.is_main else None
-    progress = Progress(total_steps, f"train cmwae ({config.scheme}, {'+'.join(config.modalities)})", unit="steps") if info.is_main else None
-    if progress is not None:
-        progress.count = step
+    desc = f"train cmwae ({config.scheme}, {'+'.join(config.modalities)})"
+    progress = Progress(total_steps, desc, unit="steps", initial=step) if info.is_main else None
     meta = {"train": asdict(config), "world_size": info.world_size, "dataset": str(config.data_dir)}
 
     def checkpoint() -> None:

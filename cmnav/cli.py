@@ -167,7 +167,7 @@ def build_parser() -> argparse.ArgumentParser:
     dataset.add_argument("--frames-per-room", type=int, default=16, help="views per room (default 16)")
     dataset.set_defaults(func=_cmd_dataset)
 
-    train = sub.add_parser("train", help="train the CMWAE encoder or the policy")
+    train = sub.add_parser("train", help="train the CMWAE encoder (the policy comes with issue 5)")
     train_sub = train.add_subparsers(dest="what", required=True, metavar="WHAT")
     cmwae = train_sub.add_parser(
         "cmwae",
@@ -194,7 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
     cmwae.add_argument("--resume", action="store_true", help="continue from the train state in --out")
     cmwae.set_defaults(func=_cmd_train_cmwae)
 
-    evaluate = sub.add_parser("eval", help="evaluate a trained encoder (Table I) or policy (Table II)")
+    evaluate = sub.add_parser("eval", help="evaluate a trained encoder (Table I)")
     eval_sub = evaluate.add_subparsers(dest="what", required=True, metavar="WHAT")
     eval_cmwae = eval_sub.add_parser("cmwae", help="Table I: MSE/SSIM at 0-50%% evaluation corruption on the held-out split")
     eval_cmwae.add_argument("--checkpoint", required=True, help="checkpoint directory")
@@ -216,7 +216,7 @@ def build_parser() -> argparse.ArgumentParser:
     goal_seeker.add_argument("-o", "--output", required=True, help="path of the ONNX file to write")
     goal_seeker.set_defaults(func=_cmd_export)
 
-    bench = sub.add_parser("bench", help="measure the sim, runtime or training speed")
+    bench = sub.add_parser("bench", help="measure speed as ratios within one run (today: the renderer, bench sim)")
     bench_sub = bench.add_subparsers(dest="what", required=True, metavar="WHAT")
     bench_sim = bench_sub.add_parser(
         "sim",

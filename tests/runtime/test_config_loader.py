@@ -83,14 +83,14 @@ def test_field_example_documents_every_key():
 
 def test_sitl_example_loads(model, tmp_path):
     (tmp_path / "examples").mkdir()
-    (tmp_path / "runs").mkdir()
+    (tmp_path / "runs" / "models").mkdir(parents=True)
     shutil.copy(EXAMPLES / "sitl.toml", tmp_path / "examples" / "sitl.toml")
-    shutil.copy(model, tmp_path / "runs" / "goal-seeker.onnx")
+    shutil.copy(model, tmp_path / "runs" / "models" / "goal-seeker.onnx")
     config = load_config(tmp_path / "examples" / "sitl.toml")
     assert config.mission.allow_arm_takeoff and config.mission.max_episodes == 1
     assert config.camera.source == "sim" and config.camera.sim.port == 5600
     # Relative paths are relative to the config file's folder.
-    assert config.policy.model_path.resolve() == (tmp_path / "runs" / "goal-seeker.onnx").resolve()
+    assert config.policy.model_path.resolve() == (tmp_path / "runs" / "models" / "goal-seeker.onnx").resolve()
     assert config.recorder.log_dir.resolve() == (tmp_path / "runs" / "fly-sitl").resolve()
 
 

@@ -32,7 +32,6 @@ import dataclasses
 import json
 import logging
 import os
-import signal
 from pathlib import Path
 from typing import Awaitable, TypeVar
 
@@ -51,6 +50,7 @@ from .log_rotation import new_log_path, rotate_logs
 from .model import ModelLoadError, PolicyModel, resolve_providers
 from .recorder import Recorder, RecorderError
 from .sdnotify import SystemdNotifier
+from .signals import cancel_on_stop_signals
 from .vehicle import MODE_OFFBOARD, Vehicle, VehicleError, VehicleState
 
 log = logging.getLogger(__name__)
@@ -275,11 +275,7 @@ class FieldProgram:
 
 
 async def _main(program: FieldProgram) -> int:
-    task = asyncio.current_task()
-    assert task is not None
-    loop = asyncio.get_running_loop()
-    for signum in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(signum, task.cancel)
+    cancel_on_stop_signals()
     try:
         return await program.run()
     except FlyError as err:

@@ -29,7 +29,6 @@ import asyncio
 import json
 import logging
 import os
-import signal
 import sys
 import time
 from pathlib import Path
@@ -44,6 +43,7 @@ from .faults import FaultKind, FaultSite, Injection, InjectionError, parse_injec
 from .flight import EpisodeResult, FlightLoop, log_task_failure
 from .model import ModelLoadError, PolicyModel
 from .recorder import Recorder, RecorderError
+from .signals import cancel_on_stop_signals
 from .vehicle import MODE_OFFBOARD, Vehicle, VehicleError
 from .watchdog import TripCause
 
@@ -242,11 +242,7 @@ def _fill(summary: dict, result: EpisodeResult) -> None:
 
 
 async def _main(args: argparse.Namespace, summary: dict) -> int:
-    task = asyncio.current_task()
-    assert task is not None
-    loop = asyncio.get_running_loop()
-    for signum in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(signum, task.cancel)
+    cancel_on_stop_signals()
     try:
         result = await fly_episode(args, summary)
     except FlightError as err:

@@ -87,17 +87,18 @@ def _tail(path: Path, lines: int = 15) -> str:
         return "(no log)"
 
 
-def _stop(proc: subprocess.Popen, name: str) -> None:
-    """SIGTERM, then SIGKILL after STOP_TIMEOUT_S, by PID."""
+def stop_process(proc: subprocess.Popen, name: str, timeout_s: float = STOP_TIMEOUT_S) -> int | None:
+    """SIGTERM, then SIGKILL after ``timeout_s``, by PID; returns the exit code."""
     if proc.poll() is not None:
-        return
+        return proc.returncode
     proc.send_signal(signal.SIGTERM)
     try:
-        proc.wait(timeout=STOP_TIMEOUT_S)
+        proc.wait(timeout=timeout_s)
     except subprocess.TimeoutExpired:
-        log.warning("%s (pid %d) ignored SIGTERM for %.0f s; killing it", name, proc.pid, STOP_TIMEOUT_S)
+        log.warning("%s (pid %d) ignored SIGTERM for %.0f s; killing it", name, proc.pid, timeout_s)
         proc.kill()
         proc.wait()
+    return proc.returncode
 
 
 def _wait_for_file(path: Path, proc: subprocess.Popen, timeout_s: float, what: str, log_path: Path) -> dict:
@@ -169,8 +170,8 @@ def run_sitl(request: SitlRequest) -> dict:
             time.sleep(FAULT_OBSERVE_S)  # still flying: ground truth of the response, whatever the runtime did
     finally:
         if runtime is not None:
-            _stop(runtime, "runtime")
-        _stop(vehicle, "SITL vehicle")
+            stop_process(runtime, "runtime")
+        stop_process(vehicle, "SITL vehicle")
 
     if not trace_path.exists():
         raise SitlError(f"the SITL vehicle wrote no trace; its log ({sim_log}):\n{_tail(sim_log)}")

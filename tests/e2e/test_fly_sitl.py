@@ -13,7 +13,6 @@ from __future__ import annotations
 import json
 import os
 import select
-import signal
 import socket
 import subprocess
 import sys
@@ -27,6 +26,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from export.goal_seeker import export_goal_seeker
 from runtime.replay import replay_log
+from sim.sitl_session import free_port, stop_process
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -37,10 +37,6 @@ FLY_TIMEOUT_S = 120.0
 PX4_MAIN_MODE_AUTO, PX4_SUB_MODE_LOITER = 4, 3  # Hold
 
 
-def free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as sock:
-        sock.bind((LOOPBACK, 0))
-        return int(sock.getsockname()[1])
 
 
 class NotifyListener:
@@ -139,13 +135,7 @@ class Sitl:
         self.episode = json.loads(episode_path.read_text())
 
     def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+        stop_process(self.proc, "SITL vehicle", 10.0)
 
 
 @pytest.fixture(scope="module")

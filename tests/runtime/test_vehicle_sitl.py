@@ -5,7 +5,6 @@ offboard mid-flight, Hold, land.  One SITL process and one event loop for the wh
 
 import asyncio
 import json
-import signal
 import socket
 import subprocess
 import sys
@@ -23,21 +22,18 @@ from runtime.contract.frames import wrap_angle
 from runtime.flight import FlightLoop
 from runtime.model import PolicyModel
 from runtime.vehicle import MODE_HOLD, MODE_OFFBOARD, Vehicle
+from sim.sitl_session import free_port, stop_process
 
 pytestmark = pytest.mark.timeout(120)
 
 
-def _free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 class Mission:
     """The SITL process, an event loop kept across the tests, and the connected vehicle."""
 
     def __init__(self, tmp_path):
-        self.mavlink_port, self.camera_port = _free_port(socket.SOCK_DGRAM), _free_port(socket.SOCK_STREAM)
+        self.mavlink_port, self.camera_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)
         episode_path = tmp_path / "episode.json"
         self.log = open(tmp_path / "sitl.log", "w")
         self.proc = subprocess.Popen(
@@ -64,13 +60,7 @@ class Mission:
             self.run(self.vehicle.close())
             self.loop.close()
         finally:
-            if self.proc.poll() is None:
-                self.proc.send_signal(signal.SIGTERM)
-                try:
-                    self.proc.wait(10)
-                except subprocess.TimeoutExpired:
-                    self.proc.kill()
-                    self.proc.wait()
+            stop_process(self.proc, "SITL vehicle", 10.0)
             self.log.close()
 
 

@@ -4,7 +4,6 @@ two modules, hence a conftest).  Every process is stopped by its PID in the fixt
 from __future__ import annotations
 
 import json
-import signal
 import socket
 import subprocess
 import sys
@@ -15,15 +14,11 @@ from pathlib import Path
 
 import pytest
 
+from sim.sitl_session import free_port, stop_process
+
 READY_TIMEOUT_S = 60.0
-STOP_TIMEOUT_S = 10.0
 
 
-def free_port(kind: int) -> int:
-    """A free 127.0.0.1 port for socket.SOCK_DGRAM or socket.SOCK_STREAM."""
-    with socket.socket(socket.AF_INET, kind) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 @dataclass
@@ -41,15 +36,8 @@ class SitlProcess:
         return self.log_path.read_text(errors="replace")[-chars:]
 
     def stop(self) -> int:
-        """SIGTERM by PID; SIGKILL if it does not exit in STOP_TIMEOUT_S.  Returns the exit code."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(STOP_TIMEOUT_S)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        return self.proc.returncode
+        """SIGTERM by PID; SIGKILL if it does not exit in time.  Returns the exit code."""
+        return stop_process(self.proc, "SITL vehicle")
 
     def trace(self) -> dict:
         return json.loads(self.trace_path.read_text())

@@ -95,3 +95,18 @@ def load_train_state(ckpt_dir: str | Path) -> dict[str, Any] | None:
     if not path.is_file():
         return None
     return torch.load(path, map_location="cpu", weights_only=False)
+
+
+def checkpoint_fingerprint(ckpt_dir: str | Path) -> str:
+    """SHA-256 (hex, first 16 digits) of a checkpoint's network: its config and weight shards, not
+    its step or meta, so a policy can name the exact encoder it was trained on."""
+    import hashlib
+
+    card = read_card(ckpt_dir)
+    digest = hashlib.sha256(json.dumps({"kind": card["kind"], "config": card["config"]}, sort_keys=True).encode())
+    for name in card["shards"]:
+        path = Path(ckpt_dir) / name
+        if not path.is_file():
+            raise CheckpointError(f"weight shard {path} is missing: copy the whole checkpoint directory")
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]

@@ -1,0 +1,126 @@
+"""Recurrent PPO pieces, and `cmnav train policy` / `cmnav eval policy` for a few iterations on
+a tiny env with a tiny encoder."""
+
+import json
+import subprocess
+import sys
+from dataclasses import asdict
+
+import pytest
+import torch
+
+from training.checkpoint import load_train_state, read_card, save_weights
+from training.cmwae.model import Cmwae, make_config
+from training.policy.network import POLICY_SIZES, ActorCritic, RunningNorm, load_policy
+from training.policy.ppo import Rollout, gae
+
+pytestmark = pytest.mark.timeout(300)
+
+
+def test_unroll_replays_the_stepwise_rollout_with_resets():
+    torch.manual_seed(0)
+    model = ActorCritic(POLICY_SIZES["tiny"])
+    model.obs_norm.update(torch.randn(100, 79) * 3 + 1)
+    steps, n = 6, 3
+    obs = torch.randn(steps, n, 79)
+    starts = torch.zeros(steps, n, dtype=torch.bool)
+    starts[0, 0] = starts[3, 1] = starts[4, 2] = True
+    hidden0 = torch.randn(n, model.hidden_size)
+    h, means, values = hidden0, [], []
+    for t in range(steps):
+        h = torch.where(starts[t].unsqueeze(-1), torch.zeros_like(h), h)
+        mean, value, h = model.step(obs[t], h)
+        means.append(mean)
+        values.append(value)
+    mean_u, value_u = model.unroll(obs, hidden0, starts)
+    torch.testing.assert_close(mean_u, torch.stack(means))
+    torch.testing.assert_close(value_u, torch.stack(values))
+
+
+def test_gae_matches_a_hand_computation():
+    gamma, lam = 0.9, 0.8
+    rewards = torch.tensor([[1.0], [2.0], [3.0]])
+    values = torch.tensor([[0.5], [1.0], [1.5]])
+    dones = torch.tensor([[False], [True], [False]])
+    rollout = Rollout(torch.zeros(3, 1, 79), torch.zeros(3, 1, dtype=torch.bool), torch.zeros(3, 1, 3), torch.zeros(3, 1),
+                      values, rewards, dones, torch.zeros(1, 4), torch.tensor([2.0]))  # fmt: skip
+    adv, ret = gae(rollout, gamma, lam)
+    d2 = 3.0 + gamma * 2.0 - 1.5
+    d1 = 2.0 - 1.0  # the episode ended: no bootstrap
+    d0 = 1.0 + gamma * 1.0 - 0.5
+    expected = torch.tensor([[d0 + gamma * lam * d1], [d1], [d2]])
+    torch.testing.assert_close(adv, expected)
+    torch.testing.assert_close(ret, expected + values)
+
+
+def test_running_norm_equals_the_statistics_of_all_batches():
+    norm = RunningNorm(4)
+    batches = [torch.randn(n, 4) * s + m for n, s, m in ((10, 1.0, 0.0), (50, 3.0, 2.0), (7, 0.5, -1.0))]
+    for b in batches:
+        norm.update(b)
+    everything = torch.cat(batches)
+    torch.testing.assert_close(norm.mean, everything.mean(0), rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(norm.var, everything.var(0, unbiased=False), rtol=1e-4, atol=1e-5)
+    assert int(norm.count) == 67
+
+
+def _cmnav(*args):
+    proc = subprocess.run([sys.executable, "-m", "cmnav", *args], capture_output=True, text=True, timeout=280)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc.stdout, proc.stderr
+
+
+@pytest.fixture(scope="module")
+def encoders(tmp_path_factory):
+    root = tmp_path_factory.mktemp("encoders")
+    config = make_config("tiny")
+    for name, seed in (("enc", 0), ("other", 1)):
+        torch.manual_seed(seed)
+        save_weights(root / name, Cmwae(config), "cmwae", asdict(config), 0, {"train": {"scheme": "s2"}})
+    return root
+
+
+TRAIN = ["train", "policy", "--size", "tiny", "--envs", "8", "--rollout", "16", "--minibatches", "2",
+         "--checkpoint-every", "4", "--curriculum-window", "2", "--max-level", "3"]  # fmt: skip
+
+
+def test_train_policy_moves_the_curriculum_checkpoints_resumes_and_evaluates(encoders, tmp_path):
+    out = tmp_path / "policy"
+    # 12 iterations x 16 steps = 192 steps per env, past the 150-step timeout: every env ends at
+    # least one episode.  An untrained policy rarely succeeds, so windows of 2 episodes move
+    # the curriculum down from level 2.
+    _, stderr = _cmnav(*TRAIN, "--encoder", str(encoders / "enc"), "--out", str(out), "--steps", "1536", "--start-level", "2")
+    card = read_card(out, "policy")
+    assert card["step"] == 1536 and card["meta"]["iteration"] == 12
+    assert card["meta"]["curriculum_level"] < 2
+    assert load_train_state(out)["curriculum"]["changes"] >= 1
+    assert "train policy:" in stderr and "env-steps/s" in stderr
+    assert list((out / "tensorboard").glob("events.out.tfevents.*"))
+    first = {k: v.clone() for k, v in load_policy(out)[0].state_dict().items()}
+
+    _cmnav(*TRAIN, "--encoder", str(encoders / "enc"), "--out", str(out), "--steps", "2048", "--resume")
+    card = read_card(out, "policy")
+    assert card["step"] == 2048 and card["meta"]["iteration"] == 16
+    resumed = load_policy(out)[0].state_dict()
+    assert any(not torch.equal(first[k], resumed[k]) for k in first if k != "obs_norm.count")
+
+    stdout, _ = _cmnav("eval", "policy", "--policy", str(out), "--encoder", str(encoders / "enc"), "--levels", "0,3",
+                       "--episodes", "2", "--out", str(tmp_path / "eval"), "--json")  # fmt: skip
+    result = json.loads(stdout.strip().splitlines()[-1])
+    cells = {(c["condition"], c["level"]): c for c in result["cells"]}
+    assert set(cells) == {(cond, lv) for cond in ("clean", "corrupted", "projector-off") for lv in (0, 3)}
+    for cell in cells.values():
+        assert cell["episodes"] == 2
+        assert cell["success_pct"] + cell["timeout_pct"] + cell["crash_pct"] == pytest.approx(100.0)
+    assert "| condition | level | episodes | success % | timeout % | crash % |" in stdout
+    assert len(list((tmp_path / "eval").glob("clean_level00_ep*.png"))) == 2
+    assert (tmp_path / "eval" / "table2.md").read_text().count("\n") == 8
+
+
+def test_eval_refuses_an_encoder_the_policy_was_not_trained_with(encoders, tmp_path):
+    out = tmp_path / "policy"
+    _cmnav(*TRAIN, "--encoder", str(encoders / "enc"), "--out", str(out), "--steps", "128")
+    proc = subprocess.run([sys.executable, "-m", "cmnav", "eval", "policy", "--policy", str(out), "--encoder",
+                           str(encoders / "other"), "--episodes", "1"], capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert proc.returncode != 0
+    assert "was trained on encoder" in proc.stderr and "pass the encoder it was trained with" in proc.stderr

@@ -1,0 +1,454 @@
+"""The batched navigation environment the policy trains and is evaluated in (PAPER.md §Policy,
+§Simulation; DESIGN §5).
+
+N envs step together on one device at the control rate (15 Hz): render depth + textured gray
+at the camera pose (``sim.render``), preprocess like the runtime (``sim.preprocess_torch``),
+optionally corrupt the depth (``sim.degradation``), encode with the frozen encoder, build the
+79-value observation exactly as the runtime does (``contract_torch``), and after the policy acts,
+map the action to a body velocity command (the contract's mapping) that the velocity-tracking
+dynamics follow for one control period, with collisions checked every physics sub-step.
+
+Episodes end in success (within 1 m of the goal), crash (any contact) or timeout (10 s); an
+ended env is reset at once to a new room at the curriculum's current level (training), or
+stays ended (evaluation, ``auto_reset=False``).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from dataclasses import asdict, dataclass, field, fields, replace
+
+import torch
+from torch import Tensor, nn
+
+from runtime.contract.constants import (
+    CONTROL_PERIOD_S,
+    EPISODE_DURATION_S,
+    GOAL_REACHED_RADIUS_M,
+    LATENT_DIM,
+    OBSERVATION_DIM,
+)
+from sim.camera import CameraModel, MountJitter, camera_pose, sample_mount_jitter
+from sim.collision import DEFAULT_VEHICLE_RADIUS_M, collides
+from sim.degradation import RL_TRAINING, PatchScheme, ProjectorOffModel, corrupt_depth, patch_masks
+from sim.dynamics import DynamicsParams, QuadrotorDynamics, QuadState
+from sim.preprocess_torch import preprocess_depth_batch, preprocess_gray_batch
+from sim.render import render
+from sim.rotations import quat_from_euler, quat_multiply, rotate_about_z
+from sim.world import WorldBatch, WorldConfig, env_seed, make_worlds
+
+from .contract_torch import action_to_velocity_flu_batch, observation_state_batch
+
+RUNNING, SUCCESS, CRASH, TIMEOUT = 0, 1, 2, 3
+OUTCOMES = {SUCCESS: "success", CRASH: "crash", TIMEOUT: "timeout"}
+CORRUPTION_MODES = ("none", "train", "episode", "projector-off")
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """PAPER.md §Reward with Aerial Gym's values: r(x, e) = m * exp(-x^2 e) attraction terms,
+    m * (exp(-x^2 e) - 1) action penalties (in [-m, 0]), progress, a (20 - dist)/20 term and the
+    crash penalty.  Positive terms are scaled by 1 + positive_scale_per_progress x curriculum
+    progress (level / max level)."""
+
+    goal_attraction: float = 5.0
+    goal_attraction_exp: float = 1.0 / 3.5
+    goal_close: float = 5.0
+    goal_close_exp: float = 2.0
+    progress_gain: float = 10.0  # per metre closer
+    progress_away_gain: float = 20.0  # per metre farther
+    distance_term_range_m: float = 20.0  # (range - dist) / range
+    action_change_penalty: tuple[float, float, float] = (0.8, 0.8, 0.8)
+    action_change_exp: tuple[float, float, float] = (3.333, 5.0, 3.33)
+    action_penalty: tuple[float, float, float] = (0.1, 1.5, 1.5)
+    action_exp: tuple[float, float, float] = (0.3, 1.0, 2.0)
+    crash_penalty: float = 100.0
+    positive_scale_per_progress: float = 2.0
+
+
+@dataclass(frozen=True)
+class CurriculumConfig:
+    """Level k = k obstacles.  After each ``window_episodes`` finished episodes, the level goes up
+    by ``step_up`` when the window's success rate exceeds ``up_threshold`` and down by
+    ``step_down`` below ``down_threshold``, within [min_level, max_level]."""
+
+    start_level: int = 0
+    min_level: int = 0
+    max_level: int = 20
+    step_up: int = 1
+    step_down: int = 1
+    up_threshold: float = 0.7
+    down_threshold: float = 0.3
+    window_episodes: int = 256
+
+    def validate(self) -> None:
+        if not 0 <= self.min_level <= self.start_level <= self.max_level:
+            raise ValueError(
+                f"curriculum levels must satisfy 0 <= min_level ({self.min_level}) <= start_level "
+                f"({self.start_level}) <= max_level ({self.max_level})"
+            )
+        if not 0.0 <= self.down_threshold < self.up_threshold <= 1.0:
+            raise ValueError(f"curriculum thresholds {self.down_threshold}/{self.up_threshold} must satisfy 0 <= down < up <= 1")
+        if self.window_episodes < 1 or self.step_up < 0 or self.step_down < 0:
+            raise ValueError("curriculum window_episodes must be >= 1 and steps >= 0")
+
+
+@dataclass(frozen=True)
+class NavEnvConfig:
+    num_envs: int = 64
+    episode_duration_s: float = EPISODE_DURATION_S
+    physics_substeps: int = 7  # per control period: 15 Hz x 7 = 105 Hz, like the SITL's 100 Hz
+    # none: clean depth; train: each step a random subset of envs (corrupted_env_fraction) gets
+    # fresh 1-30 px patches to 50%; episode: every env keeps one such mask for its whole episode
+    # (Table II "corrupted"); projector-off: sim.degradation.ProjectorOffModel on every frame.
+    corruption: str = "train"
+    corrupted_env_fraction: float = 0.5
+    corruption_scheme: PatchScheme = RL_TRAINING
+    # Disturbances: with this probability per env and control step, a kick: a random force
+    # (|F| <= kick_force_max_n) for one control period and an attitude impulse (a rotation of at
+    # most kick_angle_max_rad), standing in for force and torque kicks.
+    kick_probability: float = 0.05
+    kick_force_max_n: float = 3.0
+    kick_angle_max_rad: float = math.radians(10.0)
+    camera_jitter: bool = True  # mount error per episode: U(-5, 5) cm, U(-3, 3) deg
+    start_yaw_range_rad: float = math.pi / 3  # initial heading: goal bearing + U(-range, range)
+    vehicle_radius_m: float = DEFAULT_VEHICLE_RADIUS_M
+    world: WorldConfig = WorldConfig()
+    dynamics: DynamicsParams = DynamicsParams(ground_contact=False)
+    reward: RewardConfig = RewardConfig()
+    curriculum: CurriculumConfig = CurriculumConfig()
+
+    @property
+    def max_steps(self) -> int:
+        return int(round(self.episode_duration_s / CONTROL_PERIOD_S))
+
+    def validate(self) -> None:
+        if self.num_envs < 1:
+            raise ValueError(f"num_envs={self.num_envs} must be >= 1")
+        if self.corruption not in CORRUPTION_MODES:
+            raise ValueError(f"corruption={self.corruption!r} must be one of {CORRUPTION_MODES}")
+        if not 0.0 <= self.corrupted_env_fraction <= 1.0:
+            raise ValueError(f"corrupted_env_fraction={self.corrupted_env_fraction} must lie in [0, 1]")
+        if self.physics_substeps < 1:
+            raise ValueError(f"physics_substeps={self.physics_substeps} must be >= 1")
+        self.curriculum.validate()
+        self.world.validate()
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class StepOutput:
+    """obs [N, 79] (after any auto-reset: the new episode's first observation), reward [N],
+    done [N] bool (the episode ended this step), outcome [N] int (RUNNING/SUCCESS/CRASH/TIMEOUT),
+    level [N] (the level of the episode that ran this step), reward_terms: batch means."""
+
+    obs: Tensor
+    reward: Tensor
+    done: Tensor
+    outcome: Tensor
+    level: Tensor
+    reward_terms: dict[str, float] = field(default_factory=dict)
+
+
+def pad_world_slots(world: WorldBatch, num_slots: int) -> WorldBatch:
+    """The same worlds with ``num_slots`` obstacle slots (extra slots are invalid padding)."""
+    pad = num_slots - world.num_slots
+    if pad < 0:
+        raise ValueError(f"cannot shrink {world.num_slots} obstacle slots to {num_slots}")
+    if pad == 0:
+        return world
+
+    def grow(t: Tensor) -> Tensor:
+        return torch.cat([t, torch.zeros(t.shape[0], pad, *t.shape[2:], dtype=t.dtype, device=t.device)], dim=1)
+
+    return replace(
+        world,
+        box_center_m=grow(world.box_center_m),
+        box_half_extent_m=grow(world.box_half_extent_m),
+        box_yaw_rad=grow(world.box_yaw_rad),
+        box_valid=grow(world.box_valid),
+    )
+
+
+class Curriculum:
+    """The level schedule of :class:`CurriculumConfig` over a window of finished episodes."""
+
+    def __init__(self, config: CurriculumConfig) -> None:
+        config.validate()
+        self.config = config
+        self.level = config.start_level
+        self.changes = 0
+        self._window: deque[bool] = deque()
+
+    @property
+    def progress(self) -> float:
+        return self.level / max(self.config.max_level, 1)
+
+    def record(self, successes: list[bool]) -> None:
+        c = self.config
+        for success in successes:
+            self._window.append(success)
+            if len(self._window) < c.window_episodes:
+                continue
+            rate = sum(self._window) / len(self._window)
+            self._window.clear()
+            new = self.level
+            if rate > c.up_threshold:
+                new = min(self.level + c.step_up, c.max_level)
+            elif rate < c.down_threshold:
+                new = max(self.level - c.step_down, c.min_level)
+            if new != self.level:
+                self.level = new
+                self.changes += 1
+
+    def state_dict(self) -> dict:
+        return {"level": self.level, "changes": self.changes, "window": list(self._window)}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.level, self.changes = int(state["level"]), int(state["changes"])
+        self._window = deque(bool(x) for x in state["window"])
+
+
+class NavEnv:
+    """N navigation envs (see the module doc).  ``encoder`` maps (gray, depth) [N, 1, 224, 224]
+    to the latent [N, 64] and is frozen here.  ``fixed_level``: every episode at this level and
+    no curriculum (evaluation).  ``episode_seed_base``: episode seeds derive from it (env index,
+    episode count), so the same base gives the same rooms whatever policy flies them."""
+
+    def __init__(
+        self,
+        config: NavEnvConfig,
+        encoder: nn.Module,
+        device: torch.device | str = "cpu",
+        seed: int = 0,
+        fixed_level: int | None = None,
+        auto_reset: bool = True,
+    ) -> None:
+        config.validate()
+        self.config = config
+        self.device = torch.device(device)
+        self.encoder = encoder.to(self.device).eval()
+        for p in self.encoder.parameters():
+            p.requires_grad_(False)
+        self.num_envs = config.num_envs
+        self.seed = seed
+        self.fixed_level = fixed_level
+        self.auto_reset = auto_reset
+        self.curriculum = Curriculum(config.curriculum)
+        self.camera = CameraModel()
+        self.dynamics = QuadrotorDynamics(config.dynamics)
+        self.projector_off = ProjectorOffModel()
+        self.generator = torch.Generator().manual_seed(seed)
+        self.stage_seconds = {"render": 0.0, "preprocess": 0.0, "encode": 0.0, "physics": 0.0}
+        n = self.num_envs
+        self._slots = max(1, config.curriculum.max_level if fixed_level is None else fixed_level)
+        self.episode_index = torch.zeros(n, dtype=torch.long)
+        self.world: WorldBatch | None = None
+        self.state: QuadState | None = None
+        self.jitter: MountJitter | None = None
+        self.step_count = torch.zeros(n, dtype=torch.long, device=self.device)
+        self.prev_action = torch.zeros(n, 3, device=self.device)
+        self.prev_dist_m = torch.zeros(n, device=self.device)
+        self.episode_level = torch.zeros(n, dtype=torch.long, device=self.device)
+        self.episode_masks = torch.zeros(n, 224, 224, dtype=torch.bool)
+        self.active = torch.ones(n, dtype=torch.bool, device=self.device)
+        self.last_depth_invalid_fraction = torch.zeros(n)
+
+    # ---- episodes -------------------------------------------------------------------------
+    @property
+    def level(self) -> int:
+        return self.curriculum.level if self.fixed_level is None else self.fixed_level
+
+    def _episode_seed(self, env: int) -> int:
+        return env_seed(self.seed, env * 1_000_003 + int(self.episode_index[env]))
+
+    def reset(self) -> Tensor:
+        """Start a new episode in every env; returns the first observations [N, 79]."""
+        self._reset_envs(torch.arange(self.num_envs))
+        self.active.fill_(True)
+        return self._observe()
+
+    def _reset_envs(self, envs: Tensor) -> None:
+        cfg = self.config
+        envs = envs.cpu()
+        worlds = [
+            pad_world_slots(make_worlds([self.level], seed=self._episode_seed(int(i)), config=cfg.world), self._slots)
+            for i in envs
+        ]
+        fresh = WorldBatch(**{f.name: torch.cat([getattr(w, f.name) for w in worlds]) for f in fields(WorldBatch)})
+        fresh = fresh.to(self.device)
+        self.episode_index[envs] += 1
+        dev_envs = envs.to(self.device)
+        to_goal = fresh.goal_m - fresh.start_m
+        bearing = torch.atan2(to_goal[:, 1], to_goal[:, 0])
+        u = torch.rand(len(envs), generator=self.generator).to(self.device) * 2.0 - 1.0
+        fresh_state = QuadState.at_rest(fresh.start_m, bearing + u * cfg.start_yaw_range_rad)
+        if cfg.camera_jitter:
+            fresh_jitter = sample_mount_jitter(len(envs), self.generator, device=self.device)
+        else:
+            fresh_jitter = MountJitter(torch.zeros(len(envs), 3, device=self.device),
+                                       torch.tensor([[1.0, 0.0, 0.0, 0.0]], device=self.device).repeat(len(envs), 1))  # fmt: skip
+        if self.world is None:
+            self.world, self.state, self.jitter = fresh, fresh_state, fresh_jitter
+        else:
+            for f in fields(WorldBatch):
+                getattr(self.world, f.name)[dev_envs] = getattr(fresh, f.name)
+            for f in fields(QuadState):
+                getattr(self.state, f.name)[dev_envs] = getattr(fresh_state, f.name)
+            self.jitter.offset_body_flu_m[dev_envs] = fresh_jitter.offset_body_flu_m
+            self.jitter.quat_body_cam[dev_envs] = fresh_jitter.quat_body_cam
+        self.step_count[dev_envs] = 0
+        self.prev_action[dev_envs] = 0.0
+        self.prev_dist_m[dev_envs] = torch.linalg.vector_norm(fresh.goal_m - fresh.start_m, dim=-1)
+        self.episode_level[dev_envs] = self.level
+        if cfg.corruption == "episode":
+            coverage = cfg.corruption_scheme.sample_coverage(len(envs), self.generator)
+            self.episode_masks[envs] = patch_masks(coverage, cfg.corruption_scheme, self.generator)
+
+    # ---- observation ------------------------------------------------------------------------
+    def _timed(self, stage: str, t0: float) -> float:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+        now = time.perf_counter()
+        self.stage_seconds[stage] += now - t0
+        return now
+
+    def render_inputs(self) -> tuple[Tensor, Tensor]:
+        """The encoder's inputs for the current poses: (gray, depth) [N, 1, 224, 224] in the
+        contract's normalisation, depth corrupted per ``config.corruption``."""
+        cfg = self.config
+        t0 = time.perf_counter()
+        cam_pos, cam_quat = camera_pose(self.state.pos_enu_m, self.state.quat_enu_flu, self.camera, self.jitter)
+        out = render(self.world, cam_pos, cam_quat, self.camera)
+        t0 = self._timed("render", t0)
+        depth_m = out.depth_m
+        if cfg.corruption == "projector-off":
+            depth_m, lost = self.projector_off.apply(depth_m, out.gray_u8, self.camera.fx_px, self.generator)
+        gray = preprocess_gray_batch(out.gray_u8)
+        depth = preprocess_depth_batch(depth_m)
+        if cfg.corruption == "train":
+            chosen = (torch.rand(self.num_envs, generator=self.generator) < cfg.corrupted_env_fraction).nonzero().squeeze(1)
+            if len(chosen):
+                coverage = cfg.corruption_scheme.sample_coverage(len(chosen), self.generator)
+                masks = patch_masks(coverage, cfg.corruption_scheme, self.generator)
+                depth[chosen.to(self.device)] = corrupt_depth(depth[chosen.to(self.device)], masks)
+        elif cfg.corruption == "episode":
+            depth = corrupt_depth(depth, self.episode_masks)
+        self.last_depth_invalid_fraction = (depth == 0.0).float().mean(dim=(1, 2)).cpu()
+        self._timed("preprocess", t0)
+        return gray.unsqueeze(1), depth.unsqueeze(1)
+
+    def _observe(self) -> Tensor:
+        gray, depth = self.render_inputs()
+        t0 = time.perf_counter()
+        with torch.inference_mode():
+            latent = self.encoder(gray, depth).float()
+        self._timed("encode", t0)
+        assert latent.shape == (self.num_envs, LATENT_DIM)
+        s = self.state
+        state = observation_state_batch(
+            s.pos_enu_m, self.world.goal_m, s.quat_enu_flu, s.vel_enu_m_s, s.angvel_body_flu_rad_s, self.prev_action
+        )
+        obs = torch.cat([state, latent.clone()], dim=-1)
+        assert obs.shape[-1] == OBSERVATION_DIM
+        return obs
+
+    # ---- step -------------------------------------------------------------------------------
+    def step(self, action: Tensor) -> StepOutput:
+        """Apply raw policy actions [N, 3] for one control period."""
+        cfg = self.config
+        t0 = time.perf_counter()
+        action = action.detach().to(self.device).float().clamp(-1.0, 1.0)
+        cmd_flu = action_to_velocity_flu_batch(action)
+        kick_force, kick_rotation = self._sample_kicks()
+        crashed = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
+        dt_s = CONTROL_PERIOD_S / cfg.physics_substeps
+        state = self.state
+        if kick_rotation is not None:
+            state = replace(state, quat_enu_flu=quat_multiply(state.quat_enu_flu, kick_rotation))
+        for _ in range(cfg.physics_substeps):
+            # PX4 resolves a body velocity setpoint by the current heading (yaw only).
+            vel_cmd_enu = rotate_about_z(cmd_flu[:, :3], state.yaw_enu_rad())
+            new = self.dynamics.step(state, vel_cmd_enu, cmd_flu[:, 3], dt_s, kick_force)
+            # Crashed (and ended) envs stay where they are.
+            frozen = (crashed | ~self.active).unsqueeze(-1)
+            state = QuadState(*(torch.where(frozen, getattr(state, f.name), getattr(new, f.name)) for f in fields(QuadState)))
+            crashed |= collides(self.world, state.pos_enu_m, cfg.vehicle_radius_m) & self.active
+        self.state = state
+        self.step_count += self.active.long()
+        t0 = self._timed("physics", t0)
+
+        dist_m = torch.linalg.vector_norm(self.world.goal_m - state.pos_enu_m, dim=-1)
+        success = (dist_m < GOAL_REACHED_RADIUS_M) & ~crashed & self.active
+        timeout = (self.step_count >= cfg.max_steps) & ~crashed & ~success & self.active
+        outcome = torch.full((self.num_envs,), RUNNING, dtype=torch.long, device=self.device)
+        outcome[success] = SUCCESS
+        outcome[crashed] = CRASH
+        outcome[timeout] = TIMEOUT
+        reward, terms = self._reward(action, dist_m, crashed)
+        reward = torch.where(self.active, reward, torch.zeros_like(reward))
+        done = (outcome != RUNNING) & self.active
+        level = self.episode_level.clone()
+        self.prev_action = action
+        self.prev_dist_m = dist_m
+
+        if self.fixed_level is None and bool(done.any()):
+            self.curriculum.record((outcome[done] == SUCCESS).tolist())
+        if bool(done.any()):
+            if self.auto_reset:
+                self._reset_envs(done.nonzero().squeeze(1))
+            else:
+                self.active &= ~done
+        obs = self._observe()
+        return StepOutput(obs, reward, done, outcome, level, terms)
+
+    def _sample_kicks(self) -> tuple[Tensor | None, Tensor | None]:
+        cfg = self.config
+        if cfg.kick_probability <= 0.0:
+            return None, None
+        n = self.num_envs
+        kicked = (torch.rand(n, generator=self.generator) < cfg.kick_probability).float().unsqueeze(-1)
+        if not bool(kicked.any()):
+            return None, None
+        direction = torch.randn(n, 3, generator=self.generator)
+        direction = direction / torch.linalg.vector_norm(direction, dim=-1, keepdim=True).clamp_min(1e-9)
+        force = direction * torch.rand(n, 1, generator=self.generator) * cfg.kick_force_max_n * kicked
+        angles = (torch.rand(n, 3, generator=self.generator) * 2.0 - 1.0) * cfg.kick_angle_max_rad * kicked
+        rotation = quat_from_euler(angles[:, 0], angles[:, 1], angles[:, 2])
+        return force.to(self.device), rotation.to(self.device)
+
+    def _reward(self, action: Tensor, dist_m: Tensor, crashed: Tensor) -> tuple[Tensor, dict[str, float]]:
+        r = self.config.reward
+        dev = self.device
+        attraction = r.goal_attraction * torch.exp(-dist_m.square() * r.goal_attraction_exp)
+        close = r.goal_close * torch.exp(-dist_m.square() * r.goal_close_exp)
+        delta_m = self.prev_dist_m - dist_m
+        progress = torch.where(delta_m > 0, r.progress_gain * delta_m, r.progress_away_gain * delta_m)
+        distance = (r.distance_term_range_m - dist_m) / r.distance_term_range_m
+        change = action - self.prev_action
+        change_pen = (torch.tensor(r.action_change_penalty, device=dev)
+                      * (torch.exp(-change.square() * torch.tensor(r.action_change_exp, device=dev)) - 1.0)).sum(-1)  # fmt: skip
+        action_pen = (torch.tensor(r.action_penalty, device=dev)
+                      * (torch.exp(-action.square() * torch.tensor(r.action_exp, device=dev)) - 1.0)).sum(-1)  # fmt: skip
+        scale = 1.0 + r.positive_scale_per_progress * self.curriculum.progress
+        positive = (attraction + close + progress.clamp_min(0.0) + distance.clamp_min(0.0)) * scale
+        negative = progress.clamp_max(0.0) + distance.clamp_max(0.0) + change_pen + action_pen
+        reward = torch.where(crashed, torch.full_like(dist_m, -r.crash_penalty), positive + negative)
+        terms = {
+            "attraction": float(attraction.mean()),
+            "close": float(close.mean()),
+            "progress": float(progress.mean()),
+            "distance": float(distance.mean()),
+            "action_change_penalty": float(change_pen.mean()),
+            "action_penalty": float(action_pen.mean()),
+            "crash": float(crashed.float().mean() * -r.crash_penalty),
+        }
+        return reward, terms
+
+    def trajectory_point(self) -> Tensor:
+        """[N, 3] current positions (world ENU, m), for plots."""
+        return self.state.pos_enu_m.detach().cpu().clone()

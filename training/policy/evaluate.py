@@ -1,0 +1,133 @@
+"""Table II: success / timeout / crash % of a trained policy per curriculum level and depth
+condition, flown in the batched sim exactly as in training (same world, contract, 15 Hz) but with
+the mean action, no kicks, and the same seeded rooms for every condition and policy.
+
+Conditions: ``clean`` (full depth), ``corrupted`` (the training patches, 1-30 px to 50 %, fixed
+for the whole episode, as in the paper), ``projector-off`` (``sim.degradation.ProjectorOffModel``
+on every frame: depth lost on low-texture, dark, oblique or far surfaces).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import torch
+
+from sim.plot import plot_top_view
+
+from ..checkpoint import checkpoint_fingerprint
+from ..cmwae.train import load_cmwae
+from ..progress import Progress
+from .env import CRASH, OUTCOMES, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig
+from .network import load_policy
+
+CONDITIONS = {"clean": "none", "corrupted": "episode", "projector-off": "projector-off"}
+
+
+@dataclass(frozen=True)
+class PolicyEvalConfig:
+    policy_dir: str
+    encoder_dir: str
+    levels: tuple[int, ...] = (0, 5, 10, 15, 20)
+    conditions: tuple[str, ...] = ("clean", "corrupted", "projector-off")
+    episodes: int = 100
+    batch_envs: int = 64  # episodes flown at once
+    device: str = "cpu"
+    seed: int = 0
+    out_dir: str | None = None  # plots and table2.json (default POLICY/eval)
+    plots_per_cell: int = 2
+
+    def validate(self) -> None:
+        unknown = [c for c in self.conditions if c not in CONDITIONS]
+        if unknown:
+            raise ValueError(f"unknown conditions {unknown}: choose from {sorted(CONDITIONS)}")
+        if self.episodes < 1 or self.batch_envs < 1:
+            raise ValueError("episodes and batch_envs must be >= 1")
+        if not self.levels or min(self.levels) < 0:
+            raise ValueError(f"levels={self.levels} must be non-negative obstacle counts")
+
+
+@torch.no_grad()
+def fly_episodes(policy, encoder, level: int, condition: str, episodes: int, batch_envs: int, device, seed: int):
+    """Fly ``episodes`` episodes at ``level`` under ``condition``; yields per episode
+    (outcome code, trajectory [T, 3], world description)."""
+    done_count = 0
+    while done_count < episodes:
+        n = min(batch_envs, episodes - done_count)
+        config = NavEnvConfig(num_envs=n, corruption=CONDITIONS[condition], kick_probability=0.0,
+                              curriculum=CurriculumConfig(start_level=level, min_level=level, max_level=level))  # fmt: skip
+        # Episode seeds depend on (seed, level, episode number), not on the condition or policy.
+        env = NavEnv(config, encoder, device, seed=seed * 100_003 + level * 1009 + done_count, fixed_level=level, auto_reset=False)
+        obs = env.reset()
+        worlds = [env.world.describe(i) for i in range(n)]
+        hidden = policy.initial_hidden(n, device)
+        outcome = torch.zeros(n, dtype=torch.long)
+        trajectory = [env.trajectory_point()]
+        while bool(env.active.any()):
+            mean, _, hidden = policy.step(obs, hidden)
+            result = env.step(mean)
+            outcome[result.done.cpu()] = result.outcome[result.done].cpu()
+            trajectory.append(env.trajectory_point())
+            obs = result.obs
+        path = torch.stack(trajectory, dim=1).numpy()  # [n, T, 3]; frozen after the end
+        for i in range(n):
+            steps = int(env.step_count[i])
+            yield int(outcome[i]), path[i, : steps + 1], worlds[i]
+        done_count += n
+
+
+def evaluate_policy(config: PolicyEvalConfig) -> dict:
+    """Run every (condition, level) cell; write table2.json, table2.md and trajectory plots."""
+    config.validate()
+    device = torch.device(config.device)
+    policy, card = load_policy(config.policy_dir, device)
+    cmwae, _ = load_cmwae(config.encoder_dir, device)
+    fingerprint = card.get("meta", {}).get("encoder_fingerprint")
+    if fingerprint is not None and fingerprint != checkpoint_fingerprint(config.encoder_dir):
+        raise ValueError(
+            f"{config.policy_dir} was trained on encoder {fingerprint} ({card['meta'].get('encoder')}), but "
+            f"{config.encoder_dir} is {checkpoint_fingerprint(config.encoder_dir)}: pass the encoder it was trained with"
+        )
+    out = Path(config.out_dir or Path(config.policy_dir) / "eval")
+    out.mkdir(parents=True, exist_ok=True)
+    cells = []
+    progress = Progress(len(config.conditions) * len(config.levels) * config.episodes, "eval policy", unit="episodes")
+    for condition in config.conditions:
+        for level in config.levels:
+            counts = {SUCCESS: 0, TIMEOUT: 0, CRASH: 0}
+            for k, (code, path, world) in enumerate(
+                fly_episodes(policy, cmwae.encoder, level, condition, config.episodes, config.batch_envs, device, config.seed)
+            ):
+                counts[code] += 1
+                if k < config.plots_per_cell:
+                    plot_top_view(out / f"{condition}_level{level:02d}_ep{k}_{OUTCOMES[code]}.png", world["room_size_m"],
+                                  world["boxes"], world["start_m"], world["goal_m"], path,
+                                  title=f"{condition}, level {level}, episode {k}: {OUTCOMES[code]}")  # fmt: skip
+                progress.update(1)
+            total = sum(counts.values())
+            cells.append({
+                "condition": condition, "level": level, "episodes": total,
+                "success_pct": 100.0 * counts[SUCCESS] / total, "timeout_pct": 100.0 * counts[TIMEOUT] / total,
+                "crash_pct": 100.0 * counts[CRASH] / total,
+            })  # fmt: skip
+    progress.close()
+    result = {
+        "policy": str(config.policy_dir), "encoder": str(config.encoder_dir), "encoder_fingerprint": fingerprint,
+        "policy_env_steps": card.get("step"), "config": asdict(replace(config, out_dir=str(out))), "cells": cells,
+    }  # fmt: skip
+    (out / "table2.json").write_text(json.dumps(result, indent=2))
+    (out / "table2.md").write_text(format_table2(result) + "\n")
+    result["out_dir"] = str(out)
+    return result
+
+
+def format_table2(result: dict) -> str:
+    """The paper's layout: condition, level, success / timeout / crash %."""
+    lines = ["| condition | level | episodes | success % | timeout % | crash % |", "|---|---|---|---|---|---|"]
+    for c in result["cells"]:
+        lines.append(f"| {c['condition']} | {c['level']} | {c['episodes']} | {c['success_pct']:.1f} | "
+                     f"{c['timeout_pct']:.1f} | {c['crash_pct']:.1f} |")  # fmt: skip
+    return "\n".join(lines)
+

@@ -1,0 +1,224 @@
+"""`cmnav train policy`: recurrent PPO on the batched navigation environment with the frozen
+encoder; progress, TensorBoard scalars, periodic checkpoints, resume, and multi-GPU through
+torchrun (each process runs its own envs; gradients are averaged)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+
+from ..checkpoint import checkpoint_fingerprint, load_train_state, save_train_state, save_weights
+from ..cmwae.train import load_cmwae
+from ..distributed import DistInfo, init_distributed, shutdown
+from ..progress import Progress
+from ..tensorboard import ScalarWriter
+from .env import CRASH, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig
+from .network import CHECKPOINT_KIND, ActorCritic, PolicyConfig
+from .ppo import PpoConfig, ReturnNormalizer, Rollout, ppo_update
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PolicyTrainConfig:
+    encoder_dir: str
+    out_dir: str
+    env_steps: int = 1_000_000  # total over all processes
+    num_envs: int = 64  # per process
+    device: str = "cpu"
+    seed: int = 0
+    corruption: str = "train"  # "none" for the depth-only baseline policy
+    policy: PolicyConfig = PolicyConfig()
+    ppo: PpoConfig = PpoConfig()
+    curriculum: CurriculumConfig = CurriculumConfig()
+    checkpoint_every: int = 20  # PPO iterations
+    resume: bool = False
+    max_wall_s: float | None = None  # stop (with a checkpoint) after this long
+    env_overrides: dict = field(default_factory=dict)  # other NavEnvConfig fields
+
+    def env_config(self) -> NavEnvConfig:
+        return replace(NavEnvConfig(num_envs=self.num_envs, corruption=self.corruption, curriculum=self.curriculum),
+                       **self.env_overrides)  # fmt: skip
+
+    def validate(self) -> None:
+        if self.env_steps < 1:
+            raise ValueError(f"env_steps={self.env_steps} must be >= 1")
+        if self.checkpoint_every < 1:
+            raise ValueError(f"checkpoint_every={self.checkpoint_every} must be >= 1")
+        self.env_config().validate()
+        self.policy.validate()
+        self.ppo.validate(self.num_envs)
+
+
+def train_policy(config: PolicyTrainConfig) -> Path:
+    """Train; returns the checkpoint directory."""
+    config.validate()
+    info, device = init_distributed(config.device)
+    try:
+        return _train(config, info, device)
+    finally:
+        shutdown(info)
+
+
+def _reduce_grads(model: ActorCritic, info: DistInfo):
+    if not info.enabled:
+        return None
+
+    def reduce() -> None:
+        for p in model.parameters():
+            if p.grad is not None:
+                dist.all_reduce(p.grad, op=dist.ReduceOp.SUM)
+                p.grad /= info.world_size
+
+    return reduce
+
+
+def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> Path:
+    out = Path(config.out_dir)
+    torch.manual_seed(config.seed + info.rank)
+    cmwae, encoder_card = load_cmwae(config.encoder_dir, device)
+    encoder_fingerprint = checkpoint_fingerprint(config.encoder_dir)
+    env = NavEnv(config.env_config(), cmwae.encoder, device, seed=config.seed * 1000 + info.rank)
+    model = ActorCritic(config.policy).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.ppo.lr)
+    normalizer = ReturnNormalizer(config.num_envs, config.ppo.gamma, device)
+    update_generator = torch.Generator().manual_seed(config.seed * 1000 + info.rank + 1)
+    iteration, env_steps = 0, 0
+    state = load_train_state(out) if config.resume else None
+    if state is not None:
+        if state.get("encoder_fingerprint") != encoder_fingerprint:
+            raise ValueError(
+                f"--resume: {out} was trained on encoder {state.get('encoder_fingerprint')}, but {config.encoder_dir} is "
+                f"{encoder_fingerprint}; resume with the same --encoder or start a new --out"
+            )
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        normalizer.load_state_dict(state["return_normalizer"])
+        env.curriculum.load_state_dict(state["curriculum"])
+        env.generator.set_state(state["env_rng"])
+        update_generator.set_state(state["update_rng"])
+        iteration, env_steps = state["iteration"], state["env_steps"]
+        log.info("resumed %s at iteration %d (%d env steps, level %d)", out, iteration, env_steps, env.curriculum.level)
+    elif config.resume:
+        log.warning("--resume: no training state in %s, starting from scratch", out)
+    if info.enabled:  # every process starts from rank 0's weights
+        for tensor in list(model.parameters()) + list(model.buffers()):
+            dist.broadcast(tensor.data, src=0)
+
+    steps_per_iteration = config.ppo.rollout_steps * config.num_envs * info.world_size
+    total_iterations = -(-config.env_steps // steps_per_iteration)
+    writer = ScalarWriter(out / "tensorboard") if info.is_main else None
+    progress = Progress(total_iterations * steps_per_iteration, "train policy", unit="env-steps",
+                        initial=env_steps) if info.is_main else None  # fmt: skip
+    meta = {
+        "train": {k: v for k, v in asdict(config).items() if k not in ("policy",)},
+        "encoder": str(config.encoder_dir),
+        "encoder_fingerprint": encoder_fingerprint,
+        "encoder_step": encoder_card.get("step"),
+        "encoder_scheme": encoder_card.get("meta", {}).get("train", {}).get("scheme"),
+        "world_size": info.world_size,
+        "seed": config.seed,
+    }
+
+    def checkpoint() -> None:
+        if not info.is_main:
+            return
+        save_weights(out, model, CHECKPOINT_KIND, config.policy.to_json(), env_steps,
+                     {**meta, "env_steps": env_steps, "iteration": iteration, "curriculum_level": env.curriculum.level})  # fmt: skip
+        save_train_state(out, {
+            "model": model.state_dict(), "optimizer": optimizer.state_dict(), "iteration": iteration,
+            "env_steps": env_steps, "return_normalizer": normalizer.state_dict(),
+            "curriculum": env.curriculum.state_dict(), "env_rng": env.generator.get_state(),
+            "update_rng": update_generator.get_state(), "encoder_fingerprint": encoder_fingerprint,
+        })  # fmt: skip
+
+    obs = env.reset()
+    hidden = model.initial_hidden(config.num_envs, device)
+    starts = torch.ones(config.num_envs, dtype=torch.bool, device=device)
+    t_start = time.monotonic()
+    reduce_grads = _reduce_grads(model, info)
+    while iteration < total_iterations:
+        t_iter = time.monotonic()
+        env.stage_seconds = dict.fromkeys(env.stage_seconds, 0.0)
+        rollout, hidden, starts, obs, episode_stats = _collect(model, env, obs, hidden, starts, normalizer, config.ppo)
+        t_collect = time.monotonic() - t_iter
+        model.train()
+        losses = ppo_update(model, optimizer, rollout, config.ppo, update_generator, reduce_grads)
+        iteration += 1
+        env_steps += steps_per_iteration
+        elapsed = time.monotonic() - t_iter
+        if writer is not None:
+            scalars = {f"train/{k}": v for k, v in losses.items()}
+            scalars |= {f"reward/{k}": v for k, v in episode_stats.pop("reward_terms").items()}
+            scalars |= {f"episodes/{k}": v for k, v in episode_stats.items()}
+            scalars |= {"curriculum/level": env.curriculum.level, "curriculum/changes": env.curriculum.changes,
+                        "perf/env_steps_per_s": steps_per_iteration / elapsed,
+                        "perf/collect_share": t_collect / elapsed, "train/action_std": float(model.log_std.exp().mean())}  # fmt: skip
+            scalars |= {f"perf/{k}_s": v for k, v in env.stage_seconds.items()}
+            writer.add_scalars(env_steps, scalars)
+        if progress is not None:
+            progress.update(steps_per_iteration, level=env.curriculum.level, success=episode_stats.get("success_rate", float("nan")),
+                            reward=episode_stats["mean_step_reward"])  # fmt: skip
+        if iteration % config.checkpoint_every == 0 and iteration < total_iterations:
+            checkpoint()
+        if config.max_wall_s is not None and time.monotonic() - t_start >= config.max_wall_s:
+            log.info("wall-clock budget of %.0f s reached after %d env steps", config.max_wall_s, env_steps)
+            break
+    checkpoint()
+    if progress is not None:
+        progress.close()
+    if writer is not None:
+        writer.close()
+    return out
+
+
+@torch.no_grad()
+def _collect(model, env, obs, hidden, starts, normalizer, ppo: PpoConfig):
+    model.eval()
+    steps, n = ppo.rollout_steps, env.num_envs
+    device = obs.device
+    buf_obs = torch.zeros(steps, n, obs.shape[-1], device=device)
+    buf_starts = torch.zeros(steps, n, dtype=torch.bool, device=device)
+    buf_actions = torch.zeros(steps, n, 3, device=device)
+    buf_logp = torch.zeros(steps, n, device=device)
+    buf_values = torch.zeros(steps, n, device=device)
+    buf_rewards = torch.zeros(steps, n, device=device)
+    buf_dones = torch.zeros(steps, n, dtype=torch.bool, device=device)
+    hidden0 = hidden.clone()
+    outcomes = {SUCCESS: 0, CRASH: 0, TIMEOUT: 0}
+    terms_sum: dict[str, float] = {}
+    raw_reward_sum = 0.0
+    for t in range(steps):
+        model.obs_norm.update(obs)
+        hidden = torch.where(starts.unsqueeze(-1), torch.zeros_like(hidden), hidden)
+        mean, value, hidden = model.step(obs, hidden)
+        dist = torch.distributions.Normal(mean, model.log_std.exp())
+        action = dist.sample()
+        result = env.step(action)
+        buf_obs[t], buf_starts[t], buf_actions[t] = obs, starts, action
+        buf_logp[t], buf_values[t] = dist.log_prob(action).sum(-1), value
+        reward = result.reward * ppo.reward_scale
+        buf_rewards[t] = normalizer(reward, result.done) if ppo.normalize_returns else reward
+        buf_dones[t] = result.done
+        raw_reward_sum += float(result.reward.mean())
+        for code in outcomes:
+            outcomes[code] += int((result.outcome[result.done] == code).sum())
+        for k, v in result.reward_terms.items():
+            terms_sum[k] = terms_sum.get(k, 0.0) + v
+        obs, starts = result.obs, result.done
+    next_hidden = torch.where(starts.unsqueeze(-1), torch.zeros_like(hidden), hidden)
+    _, last_value, _ = model.step(obs, next_hidden)
+    rollout = Rollout(buf_obs, buf_starts, buf_actions, buf_logp, buf_values, buf_rewards, buf_dones, hidden0, last_value)
+    finished = sum(outcomes.values())
+    stats = {"finished": float(finished), "mean_step_reward": raw_reward_sum / steps,
+             "reward_terms": {k: v / steps for k, v in terms_sum.items()}}  # fmt: skip
+    if finished:
+        stats |= {"success_rate": outcomes[SUCCESS] / finished, "crash_rate": outcomes[CRASH] / finished,
+                  "timeout_rate": outcomes[TIMEOUT] / finished}  # fmt: skip
+    return rollout, hidden, starts, obs, stats
+

@@ -22,6 +22,30 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_export_policy(args: argparse.Namespace) -> int:
+    import json
+
+    missing = [flag for flag, value in (("--encoder", args.encoder), ("--policy", args.policy), ("-o", args.model_out)) if not value]
+    if missing:
+        print(f"cmnav export: {', '.join(missing)} required (or `cmnav export goal-seeker -o PATH`)", file=sys.stderr)
+        return 2
+    from export.policy_onnx import ExportError, export_policy
+    from runtime.contract import ContractMismatchError
+    from runtime.log_reader import ReplayError
+    from runtime.model import ModelLoadError
+
+    variants = tuple(v for v in args.variants.split(",") if v) if args.variants else ()
+    try:
+        report = export_policy(args.encoder, args.policy, args.model_out, recorded=args.recorded, variants=variants)
+    except (ExportError, ReplayError, ModelLoadError, ContractMismatchError) as err:
+        print(f"cmnav export: {err}", file=sys.stderr)
+        return 2
+    print(report.format())
+    if args.json:
+        print(json.dumps(report.to_json()))
+    return 0
+
+
 def _cmd_dataset(args: argparse.Namespace) -> int:
     from training.data.generate import DatasetSpec, generate_dataset
 
@@ -45,6 +69,26 @@ def _cmd_train_cmwae(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train_policy(args: argparse.Namespace) -> int:
+    from training.policy.env import CurriculumConfig
+    from training.policy.network import POLICY_SIZES
+    from training.policy.ppo import PpoConfig
+    from training.policy.train import PolicyTrainConfig, train_policy
+
+    config = PolicyTrainConfig(
+        encoder_dir=args.encoder, out_dir=args.out, env_steps=args.steps, num_envs=args.envs, device=args.device,
+        seed=args.seed, corruption=args.corruption, policy=POLICY_SIZES[args.size],
+        ppo=PpoConfig(rollout_steps=args.rollout, minibatches=args.minibatches, lr=args.lr),
+        curriculum=CurriculumConfig(start_level=args.start_level, max_level=args.max_level,
+                                    window_episodes=args.curriculum_window),
+        checkpoint_every=args.checkpoint_every, resume=args.resume,
+        max_wall_s=None if args.minutes is None else args.minutes * 60.0,
+    )  # fmt: skip
+    out = train_policy(config)
+    print(f"checkpoint in {out}")
+    return 0
+
+
 def _cmd_eval_cmwae(args: argparse.Namespace) -> int:
     import json
 
@@ -55,9 +99,44 @@ def _cmd_eval_cmwae(args: argparse.Namespace) -> int:
                         device=args.device, max_images=args.max_images, seed=args.seed)  # fmt: skip
     )
     print(result["table"])
-    print(f"MSE at 50% / 0%: {result['mse_ratio_50_over_0']}; plots in {result['plots']['mse'].rsplit('/', 1)[0]}")
+    print(f"MSE at 50% / 0%: {result['mse_ratio_50_over_0']}; table1.json and plots in {result['out_dir']}")
     if args.json:
         print(json.dumps(result))
+    return 0
+
+
+def _cmd_eval_policy(args: argparse.Namespace) -> int:
+    import json
+
+    from training.policy.evaluate import PolicyEvalConfig, evaluate_policy, format_table2
+
+    config = PolicyEvalConfig(
+        policy_dir=args.policy, encoder_dir=args.encoder, levels=tuple(args.levels), conditions=tuple(args.conditions),
+        episodes=args.episodes, batch_envs=args.batch_envs, device=args.device, seed=args.seed, out_dir=args.out,
+    )  # fmt: skip
+    result = evaluate_policy(config)
+    print(format_table2(result))
+    print(f"table2.json, table2.md and trajectory plots in {result['out_dir']}")
+    if args.json:
+        print(json.dumps(result))
+    return 0
+
+
+def _cmd_pipeline(args: argparse.Namespace) -> int:
+    from training.pipeline import PipelineConfig, run_pipeline
+
+    config = PipelineConfig(
+        out_dir=args.out, minutes=args.minutes, device=args.device, seed=args.seed, dataset_count=args.dataset_count,
+        dataset=args.dataset, encoder_size=args.encoder_size, encoder_batch_size=args.encoder_batch_size,
+        policy_size=args.policy_size, envs=args.envs, eval_episodes=args.eval_episodes, eval_levels=tuple(args.eval_levels),
+        call_minutes=args.call_minutes,
+    )  # fmt: skip
+    summary = run_pipeline(config, sys.argv[1:])
+    if not summary["done"]:
+        print(f"pipeline paused after this call's {args.call_minutes} min (spent so far: {summary['spent_s']}); "
+              "run the same command again to continue")  # fmt: skip
+        return 3
+    print(f"pipeline done in {sum(summary['timings_s'].values()):.0f} s; model card: {args.out}/MODEL_CARD.md")
     return 0
 
 
@@ -68,6 +147,41 @@ def _cmd_bench_sim(args: argparse.Namespace) -> int:
 
     result = run_sim_bench(QUICK if args.quick else SimBenchConfig())
     print(json.dumps(result) if args.json else format_sim_bench(result))
+    return 0
+
+
+def _cmd_bench_train(args: argparse.Namespace) -> int:
+    import json
+
+    from bench.train import TrainBenchConfig, format_train_bench, quick, run_train_bench
+
+    config = TrainBenchConfig(env_counts=tuple(args.envs), device=args.device, encoder_dir=args.encoder,
+                              rollout_steps=args.steps, level=args.level)  # fmt: skip
+    result = run_train_bench(quick(config) if args.quick else config)
+    print(json.dumps(result) if args.json else format_train_bench(result))
+    return 0
+
+
+def _cmd_bench_runtime(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    from bench.runtime import RuntimeBenchConfig, format_runtime_bench, quick, run_runtime_bench
+    from export.policy_onnx import ExportError
+    from runtime.contract import ContractMismatchError
+    from runtime.model import ModelLoadError
+
+    config = RuntimeBenchConfig(
+        model=Path(args.model), encoder=args.encoder and Path(args.encoder), policy=args.policy and Path(args.policy),
+        sitl=not args.no_sitl, sitl_level=args.level, sitl_seed=args.seed, sitl_timeout_s=args.sitl_timeout,
+        out_dir=Path(args.out), variants=not args.no_variants,
+    )  # fmt: skip
+    try:
+        result = run_runtime_bench(quick(config) if args.quick else config)
+    except (ModelLoadError, ContractMismatchError, ExportError) as err:
+        print(f"cmnav bench runtime: {err}", file=sys.stderr)
+        return 2
+    print(json.dumps(result) if args.json else format_runtime_bench(result))
     return 0
 
 
@@ -167,7 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
     dataset.add_argument("--frames-per-room", type=int, default=16, help="views per room (default 16)")
     dataset.set_defaults(func=_cmd_dataset)
 
-    train = sub.add_parser("train", help="train the CMWAE encoder (the policy comes with issue 5)")
+    train = sub.add_parser("train", help="train the CMWAE encoder or the navigation policy")
     train_sub = train.add_subparsers(dest="what", required=True, metavar="WHAT")
     cmwae = train_sub.add_parser(
         "cmwae",
@@ -194,7 +308,35 @@ def build_parser() -> argparse.ArgumentParser:
     cmwae.add_argument("--resume", action="store_true", help="continue from the train state in --out")
     cmwae.set_defaults(func=_cmd_train_cmwae)
 
-    evaluate = sub.add_parser("eval", help="evaluate a trained encoder (Table I)")
+    policy = train_sub.add_parser(
+        "policy",
+        help="train the navigation policy (recurrent PPO) on the batched sim with a frozen encoder",
+        description="Recurrent PPO (FC 256-128-64 ELU -> GRU -> FC) on N simulated envs at 15 Hz, with the "
+        "frozen encoder, the runtime's observation/action contract, depth corruption on a random half of "
+        "the envs each step, kicks, camera jitter and the obstacle curriculum.  Multi-GPU: "
+        "`torchrun --nproc_per_node=N -m cmnav train policy ... --device cuda`.",
+    )
+    policy.add_argument("--encoder", required=True, help="encoder checkpoint directory (cmnav train cmwae)")
+    policy.add_argument("--out", required=True, help="checkpoint directory (model.json + fp16 shards + train state)")
+    policy.add_argument("--steps", type=int, default=1_000_000, help="env steps in total (default 1e6)")
+    policy.add_argument("--minutes", type=float, help="stop (with a checkpoint) after this wall-clock time")
+    policy.add_argument("--envs", type=int, default=64, help="envs per process (default 64)")
+    policy.add_argument("--device", default="cpu", help="cpu or cuda")
+    policy.add_argument("--seed", type=int, default=0)
+    policy.add_argument("--corruption", choices=["train", "none"], default="train",
+                        help="depth corruption during training (none: the depth-only baseline policy)")  # fmt: skip
+    policy.add_argument("--size", choices=["paper", "tiny"], default="paper", help="policy width (paper: FC 256-128-64, GRU 64)")
+    policy.add_argument("--rollout", type=int, default=32, help="steps per PPO rollout (default 32)")
+    policy.add_argument("--minibatches", type=int, default=4, help="PPO minibatches per epoch, split over envs")
+    policy.add_argument("--lr", type=float, default=3e-4)
+    policy.add_argument("--start-level", type=int, default=0, help="curriculum start level (obstacles)")
+    policy.add_argument("--max-level", type=int, default=20, help="curriculum cap")
+    policy.add_argument("--curriculum-window", type=int, default=256, help="episodes per curriculum decision")
+    policy.add_argument("--checkpoint-every", type=int, default=20, help="PPO iterations between checkpoints")
+    policy.add_argument("--resume", action="store_true", help="continue from the train state in --out")
+    policy.set_defaults(func=_cmd_train_policy)
+
+    evaluate = sub.add_parser("eval", help="evaluate a trained encoder (Table I) or policy (Table II)")
     eval_sub = evaluate.add_subparsers(dest="what", required=True, metavar="WHAT")
     eval_cmwae = eval_sub.add_parser("cmwae", help="Table I: MSE/SSIM at 0-50%% evaluation corruption on the held-out split")
     eval_cmwae.add_argument("--checkpoint", required=True, help="checkpoint directory")
@@ -207,16 +349,88 @@ def build_parser() -> argparse.ArgumentParser:
     eval_cmwae.add_argument("--json", action="store_true", help="print the result as JSON on the last line")
     eval_cmwae.set_defaults(func=_cmd_eval_cmwae)
 
-    export = sub.add_parser("export", help="write an ONNX model for the runtime")
-    export_sub = export.add_subparsers(dest="what", required=True, metavar="WHAT")
+    def int_list(text: str) -> list[int]:
+        return [int(x) for x in text.split(",") if x]
+
+    def name_list(text: str) -> list[str]:
+        return [x for x in text.split(",") if x]
+
+    eval_policy = eval_sub.add_parser(
+        "policy",
+        help="Table II: success/timeout/crash %% per level and depth condition, with trajectory plots",
+        description="Fly N seeded episodes per (condition, level) in the batched sim with the policy's mean "
+        "action and no kicks; the same rooms for every condition and policy.  Conditions: clean, corrupted "
+        "(the training patches fixed for the whole episode), projector-off (depth lost like a D455 without "
+        "its projector).",
+    )
+    eval_policy.add_argument("--policy", required=True, help="policy checkpoint directory (cmnav train policy)")
+    eval_policy.add_argument("--encoder", required=True, help="the encoder checkpoint the policy was trained with")
+    eval_policy.add_argument("--levels", type=int_list, default=[0, 5, 10, 15, 20], help="comma-separated (default 0,5,10,15,20)")
+    eval_policy.add_argument("--conditions", type=name_list, default=["clean", "corrupted", "projector-off"],
+                             help="comma-separated subset of clean,corrupted,projector-off (default all)")  # fmt: skip
+    eval_policy.add_argument("--episodes", type=int, default=100, help="episodes per cell (default 100)")
+    eval_policy.add_argument("--batch-envs", type=int, default=64, help="episodes flown at once")
+    eval_policy.add_argument("--device", default="cpu")
+    eval_policy.add_argument("--seed", type=int, default=0, help="seed of the rooms")
+    eval_policy.add_argument("--out", help="directory for table2.json/.md and plots (default POLICY/eval)")
+    eval_policy.add_argument("--json", action="store_true", help="print the result as JSON on the last line")
+    eval_policy.set_defaults(func=_cmd_eval_policy)
+
+    pipeline = sub.add_parser(
+        "pipeline",
+        help="dataset -> encoder (S2) -> Table I -> policy -> Table II -> export, within a time budget",
+        description="The one-command training run for a GPU machine with only torch, onnx, onnxruntime and numpy: "
+        "renders a dataset, trains the CMWAE (S2) and the policy on shares of the --minutes budget "
+        "(35%% and 50%%), evaluates Table I and II, exports model.onnx, and writes MODEL_CARD.md and "
+        "pipeline.json in --out.  Checkpoints are fp16 shards <= 15 MiB.",
+    )
+    pipeline.add_argument("--out", required=True, help="output directory")
+    pipeline.add_argument("--minutes", type=float, required=True, help="wall-clock budget")
+    pipeline.add_argument("--device", default="cuda", help="cuda (default) or cpu")
+    pipeline.add_argument("--seed", type=int, default=0)
+    pipeline.add_argument("--dataset-count", type=int, default=8000, help="gray/depth pairs to render (default 8000)")
+    pipeline.add_argument("--dataset", help="use this existing dataset directory instead of rendering one")
+    pipeline.add_argument("--encoder-size", choices=["paper", "small", "tiny"], default="paper")
+    pipeline.add_argument("--encoder-batch-size", type=int, default=64)
+    pipeline.add_argument("--policy-size", choices=["paper", "tiny"], default="paper")
+    pipeline.add_argument("--envs", type=int, default=512, help="policy-training envs (default 512)")
+    pipeline.add_argument("--eval-episodes", type=int, default=100, help="Table II episodes per cell (default 100)")
+    pipeline.add_argument("--eval-levels", type=int_list, default=[0, 5, 10, 15, 20], help="Table II levels")
+    pipeline.add_argument("--call-minutes", type=float,
+                          help="stop this call after this long (exit 3); the same command continues the run")  # fmt: skip
+    pipeline.set_defaults(func=_cmd_pipeline)
+
+    export = sub.add_parser(
+        "export",
+        help="write an ONNX model for the runtime: trained encoder + policy, or the goal-seeker",
+        usage="cmnav export --encoder CKPT --policy CKPT -o MODEL.onnx [--recorded LOG.mcap] [--variants fp16,int8] [--json]\n"
+        "       cmnav export goal-seeker -o MODEL.onnx",
+        description="Build one ONNX graph for the runtime's control step from a CMWAE encoder checkpoint (its encoder "
+        "only) and a policy checkpoint: (gray, depth, state, GRU hidden) -> (action, next hidden, latent), batch 1, "
+        "opset 17, with the contract, normalisation, action scaling and provenance (git commit, checkpoint "
+        "fingerprints, data, seed, eval tables) in its metadata.  Refuses a policy trained on another encoder.  "
+        "Checks ONNX Runtime against torch on random inputs (and on a flight log's frames with --recorded), "
+        "max abs error <= 1e-4, then loads the file with the runtime's own loader.  --variants also writes "
+        "MODEL.fp16.onnx / MODEL.int8.onnx with their parity cost; `cmnav bench runtime` times them.",
+    )
+    export.add_argument("--encoder", metavar="CKPT", help="CMWAE checkpoint directory (cmnav train cmwae), e.g. models/cmwae-s2")
+    export.add_argument("--policy", metavar="CKPT", help="policy checkpoint directory (cmnav train policy)")
+    export.add_argument("-o", "--output", dest="model_out", metavar="MODEL.onnx", help="path of the ONNX file to write")
+    export.add_argument("--recorded", metavar="LOG.mcap", help="flight log (MCAP, cmnav fly/sitl) whose frames and states join the parity "
+                        "check and calibrate int8")  # fmt: skip
+    export.add_argument("--variants", default="", metavar="fp16,int8", help="comma-separated: fp16 (for GPU providers), int8 (static QDQ)")
+    export.add_argument("--json", action="store_true", help="also print the export report as one JSON line")
+    export.set_defaults(func=_cmd_export_policy)
+    export_sub = export.add_subparsers(dest="what", required=False, metavar="{goal-seeker}")
     goal_seeker = export_sub.add_parser(
         "goal-seeker",
+        prog="cmnav export goal-seeker",
         help="a plumbing-check model that ignores the images and steers toward the goal",
     )
     goal_seeker.add_argument("-o", "--output", required=True, help="path of the ONNX file to write")
     goal_seeker.set_defaults(func=_cmd_export)
 
-    bench = sub.add_parser("bench", help="measure speed as ratios within one run (today: the renderer, bench sim)")
+    bench = sub.add_parser("bench", help="measure speed as ratios within one run: renderer, runtime step, policy training")
     bench_sub = bench.add_subparsers(dest="what", required=True, metavar="WHAT")
     bench_sim = bench_sub.add_parser(
         "sim",
@@ -229,6 +443,44 @@ def build_parser() -> argparse.ArgumentParser:
     bench_sim.add_argument("--json", action="store_true", help="print the result as one JSON object instead")
     bench_sim.add_argument("--quick", action="store_true", help="a few seconds' smoke run (N in {1, 2}, 0/3 obstacles, one timed call)")  # fmt: skip
     bench_sim.set_defaults(func=_cmd_bench_sim)
+    bench_runtime = bench_sub.add_parser(
+        "runtime",
+        help="the control step: preprocessing, ONNX step (1/2 threads, CUDA/TensorRT when present), torch eager, "
+        "SITL grab->command; ratios against the targets",
+        description="In one run: p50/p99 of preprocessing, the ONNX step with 1 and 2 intra-op threads (and its "
+        "fp16/int8 variants found next to the model), the same networks in torch eager (with --encoder/--policy), "
+        "and grab->command in one short SITL flight; the model's FLOPs, this CPU's theoretical FP32 peak and its "
+        "achieved GEMM rate; and the ratios against the targets (ONNX <= 0.65x eager, <= 1.3x ideal, overhead "
+        "<= 3 ms p99, end to end <= 25 ms p99) with PASS/MISS.",
+    )
+    bench_runtime.add_argument("--model", required=True, help="ONNX model with the runtime's contract (cmnav export)")
+    bench_runtime.add_argument("--encoder", help="the CMWAE checkpoint the model was exported from (for the torch eager rows)")
+    bench_runtime.add_argument("--policy", help="the policy checkpoint the model was exported from (for the torch eager rows)")
+    bench_runtime.add_argument("--no-sitl", action="store_true", help="skip the SITL flight (no end-to-end rows)")
+    bench_runtime.add_argument("--no-variants", action="store_true", help="do not time MODEL.fp16.onnx / MODEL.int8.onnx")
+    bench_runtime.add_argument("--level", type=int, default=0, help="SITL curriculum level (default 0)")
+    bench_runtime.add_argument("--seed", type=int, default=0, help="SITL world seed (default 0)")
+    bench_runtime.add_argument("--sitl-timeout", type=float, default=20.0, help="SITL offboard time limit, s (default 20)")
+    bench_runtime.add_argument("--out", default="runs/bench-runtime", help="directory for the SITL run (default runs/bench-runtime)")
+    bench_runtime.add_argument("--json", action="store_true", help="print the result as one JSON object instead")
+    bench_runtime.add_argument("--quick", action="store_true", help="a smoke run of every path (a few calls each, 3 s SITL flight)")
+    bench_runtime.set_defaults(func=_cmd_bench_runtime)
+    bench_train = bench_sub.add_parser(
+        "train",
+        help="policy-training env-steps/s for N envs, with the share of render, preprocess, encoder, physics, "
+        "policy and PPO update",
+        description="Collect one PPO rollout in the batched navigation env (training configuration) for each N and "
+        "run one PPO update on it, on one device; print env-steps/s and each stage's share of the time.",
+    )
+    bench_train.add_argument("--envs", type=lambda t: [int(x) for x in t.split(",") if x], default=[16, 64],
+                             help="comma-separated env counts (default 16,64)")  # fmt: skip
+    bench_train.add_argument("--device", default="cpu", help="cpu or cuda")
+    bench_train.add_argument("--encoder", help="encoder checkpoint (default: an untrained paper-size encoder)")
+    bench_train.add_argument("--steps", type=int, default=16, help="rollout steps timed per N (default 16)")
+    bench_train.add_argument("--level", type=int, default=10, help="obstacles per room (default 10)")
+    bench_train.add_argument("--json", action="store_true", help="print the result as one JSON object instead")
+    bench_train.add_argument("--quick", action="store_true", help="a seconds-long smoke run (2 envs, tiny networks)")
+    bench_train.set_defaults(func=_cmd_bench_train)
     return parser
 
 

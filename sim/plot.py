@@ -1,15 +1,20 @@
 """Top-view trajectory plot of one episode, like the paper's trajectory figure: room, obstacles,
-flown path, start (blue) and goal (red).  Drawn with OpenCV so it needs no plotting library."""
+flown path, start (blue) and goal (red).  Drawn with OpenCV so it needs no plotting library; where
+OpenCV is missing (the offline GPU machine) the plot is skipped with one warning naming the fix."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
+from types import ModuleType
 from typing import Sequence
 
-import cv2
 import numpy as np
 
 from runtime.contract.constants import GOAL_REACHED_RADIUS_M
+
+log = logging.getLogger(__name__)
+_warned: set[str] = set()
 
 PX_PER_M = 60
 MARGIN_PX = 50
@@ -18,6 +23,20 @@ BGR_RED = (0, 0, 220)
 BGR_PATH = (40, 140, 40)
 BGR_OBSTACLE = (110, 110, 110)
 BGR_WALL = (0, 0, 0)
+
+
+def opencv_for_drawing(command: str) -> ModuleType | None:
+    """cv2 to draw with, or None where OpenCV is missing; then warns once per ``command`` (the
+    one to re-run for the plots, e.g. ``cmnav eval policy``) that plots are skipped."""
+    try:
+        import cv2  # here, not at the top: the offline GPU machine has no OpenCV
+    except ImportError:
+        if command not in _warned:
+            _warned.add(command)
+            log.warning("OpenCV is not installed, so plots are skipped: install opencv-python-headless and "
+                        "re-run `%s` to draw them", command)  # fmt: skip
+        return None
+    return cv2
 
 
 def plot_top_view(
@@ -29,9 +48,14 @@ def plot_top_view(
     trajectory_enu_m: np.ndarray,
     title: str = "",
     collision_enu_m: Sequence[float] | None = None,
-) -> Path:
-    """Draw the x-y plane (ENU, x to the right, y up) and write a PNG.  Boxes are dicts with
-    ``center_m``, ``half_extent_m`` and ``yaw_rad`` as the SITL episode file has them."""
+    command: str = "cmnav eval policy",
+) -> Path | None:
+    """Draw the x-y plane (ENU, x to the right, y up) and write a PNG; None (and a warning naming
+    ``command`` to re-run) where OpenCV is missing.  Boxes are dicts with ``center_m``,
+    ``half_extent_m`` and ``yaw_rad`` as the SITL episode file has them."""
+    cv2 = opencv_for_drawing(command)
+    if cv2 is None:
+        return None
     length_m, width_m = float(room_size_m[0]), float(room_size_m[1])
     w_px = int(round(length_m * PX_PER_M)) + 2 * MARGIN_PX
     h_px = int(round(width_m * PX_PER_M)) + 2 * MARGIN_PX + 30

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import time
 from dataclasses import dataclass
 
 import torch
@@ -45,6 +46,15 @@ def all_reduce_mean(value: torch.Tensor, info: DistInfo) -> torch.Tensor:
         dist.all_reduce(value, op=dist.ReduceOp.SUM)
         value /= info.world_size
     return value
+
+
+def wall_budget_spent(max_wall_s: float | None, t_start: float, info: DistInfo, device: torch.device) -> bool:
+    """True once ``max_wall_s`` seconds have passed since ``t_start`` (time.monotonic) on any
+    process, so that every process stops at the same step."""
+    if max_wall_s is None:
+        return False
+    over = torch.tensor([1.0 if time.monotonic() - t_start >= max_wall_s else 0.0], device=device)
+    return bool(all_reduce_mean(over, info) > 0)
 
 
 def shutdown(info: DistInfo) -> None:

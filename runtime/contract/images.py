@@ -6,11 +6,14 @@ depth: metres float32 (H, W), 0 / NaN / inf / negative = invalid -> (224, 224) f
 centre-aligned nearest neighbour so invalid pixels are never blended into valid ones.
 
 The torch twin for batched training lives in ``sim`` and is tested against these functions.
+
+OpenCV is a base dependency of the runtime, but it is imported inside the functions: everything
+imports this package for its constants, including training on the offline GPU machine, which has
+no OpenCV (it uses the torch twin there).
 """
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from .constants import DEPTH_INVALID_VALUE, DEPTH_MAX_M, IMAGE_SIZE_PX
@@ -26,6 +29,8 @@ def gray_from_bgr(bgr_u8: np.ndarray) -> np.ndarray:
         raise ImageContractError(
             f"expected a BGR uint8 image of shape (H, W, 3), got {bgr_u8.dtype} {bgr_u8.shape}"
         )
+    import cv2  # here, not at the top: the offline GPU machine has no OpenCV
+
     return cv2.cvtColor(bgr_u8, cv2.COLOR_BGR2GRAY)
 
 
@@ -38,6 +43,8 @@ def preprocess_gray(image_u8: np.ndarray) -> np.ndarray:
         raise ImageContractError(
             f"expected a gray uint8 image of shape (H, W), got {image_u8.dtype} {image_u8.shape}"
         )
+    import cv2  # here, not at the top: the offline GPU machine has no OpenCV
+
     resized = cv2.resize(image_u8, (IMAGE_SIZE_PX, IMAGE_SIZE_PX), interpolation=cv2.INTER_LINEAR)
     return resized.astype(np.float32) * np.float32(1.0 / 255.0)
 
@@ -55,6 +62,8 @@ def preprocess_depth(depth_m: np.ndarray) -> np.ndarray:
         raise ImageContractError(
             f"expected a float depth image in metres of shape (H, W), got {depth_m.dtype} {depth_m.shape}"
         )
+    import cv2  # here, not at the top: the offline GPU machine has no OpenCV
+
     depth = depth_m.astype(np.float32, copy=True)
     invalid = depth_invalid_mask(depth)
     depth[invalid] = 0.0

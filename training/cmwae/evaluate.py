@@ -1,6 +1,10 @@
 """`cmnav eval cmwae`: Table I — mean depth-reconstruction MSE and SSIM on the held-out split at
 0/20/30/40/50 % evaluation corruption (square patches of side 1..50 px), as a markdown table like
-the paper's, plus MSE/SSIM box plots and a grid of example inputs and reconstructions."""
+the paper's, plus MSE/SSIM box plots and a grid of example inputs and reconstructions.
+
+The table needs only torch: SSIM comes from pytorch-msssim, or from its wheel in vendor/ where it
+is not installed (training.vendored).  The plots are drawn with OpenCV and skipped, with one
+warning, where it is missing (the offline GPU machine); ``plots`` then lists only those drawn."""
 
 from __future__ import annotations
 
@@ -8,16 +12,19 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
-from pytorch_msssim import ssim
 from torch.utils.data import DataLoader
 
 from sim.degradation import EVALUATION_COVERAGES, corrupt_depth, evaluation_scheme, patch_masks
+from sim.plot import opencv_for_drawing
 
 from ..data.tartanair import GrayDepthDataset
+from ..vendored import import_vendored
 from .train import load_cmwae
+
+ssim = import_vendored("pytorch_msssim").ssim
+RERUN = "cmnav eval cmwae"
 
 
 @dataclass(frozen=True)
@@ -73,9 +80,11 @@ def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
     out = Path(config.out_dir) if config.out_dir else Path(config.checkpoint) / "eval"
     out.mkdir(parents=True, exist_ok=True)
     labels = [f"{r['corruption_pct']}%" for r in rows]
-    box_plot(out / "mse_boxplot.png", labels, [1e3 * np.asarray(v["mse"]) for v in per_coverage.values()], "MSE x1e-3")
-    box_plot(out / "ssim_boxplot.png", labels, [1e2 * np.asarray(v["ssim"]) for v in per_coverage.values()], "SSIM x1e-2")
-    example_grid(out / "examples.png", examples)
+    plots = {
+        "mse": box_plot(out / "mse_boxplot.png", labels, [1e3 * np.asarray(v["mse"]) for v in per_coverage.values()], "MSE x1e-3"),
+        "ssim": box_plot(out / "ssim_boxplot.png", labels, [1e2 * np.asarray(v["ssim"]) for v in per_coverage.values()], "SSIM x1e-2"),
+        "examples": example_grid(out / "examples.png", examples),
+    }  # fmt: skip
     result = {
         "checkpoint": str(config.checkpoint),
         "scheme": card["meta"].get("train", {}).get("scheme"),
@@ -85,7 +94,8 @@ def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
         "rows": rows,
         "table": markdown_table(rows),
         "mse_ratio_50_over_0": _ratio(rows),
-        "plots": {"mse": str(out / "mse_boxplot.png"), "ssim": str(out / "ssim_boxplot.png"), "examples": str(out / "examples.png")},
+        "out_dir": str(out),
+        "plots": {name: str(path) for name, path in plots.items() if path is not None},
     }
     (out / "table1.json").write_text(json.dumps(result, indent=2))
     return result
@@ -102,8 +112,11 @@ def markdown_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def box_plot(path: Path, labels: list[str], series: list[np.ndarray], ylabel: str) -> None:
-    """Box plots (median, quartiles, whiskers at 1.5 IQR) drawn with OpenCV."""
+def box_plot(path: Path, labels: list[str], series: list[np.ndarray], ylabel: str) -> Path | None:
+    """Box plots (median, quartiles, whiskers at 1.5 IQR) drawn with OpenCV; None without it."""
+    cv2 = opencv_for_drawing(RERUN)
+    if cv2 is None:
+        return None
     width, height, margin = 120 * len(series) + 100, 420, 60
     image = np.full((height, width, 3), 255, np.uint8)
     lo = min(float(np.min(s)) for s in series if len(s))
@@ -131,10 +144,15 @@ def box_plot(path: Path, labels: list[str], series: list[np.ndarray], ylabel: st
         cv2.putText(image, f"{v:.3g}", (5, y(float(v)) + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1)
     cv2.putText(image, f"{ylabel} by corruption", (margin, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1)
     cv2.imwrite(str(path), image)
+    return path
 
 
-def example_grid(path: Path, examples: dict[float, tuple]) -> None:
-    """Rows: coverage x example; columns: gray, corrupted depth input, reconstruction, target."""
+def example_grid(path: Path, examples: dict[float, tuple]) -> Path | None:
+    """Rows: coverage x example; columns: gray, corrupted depth input, reconstruction, target.
+    Drawn with OpenCV; None without it."""
+    cv2 = opencv_for_drawing(RERUN)
+    if cv2 is None:
+        return None
     rows = []
     for coverage, (gray, corrupted, recon, depth) in examples.items():
         for k in range(gray.shape[0]):
@@ -146,3 +164,4 @@ def example_grid(path: Path, examples: dict[float, tuple]) -> None:
     for i, name in enumerate(("gray", "depth in", "recon", "target")):
         cv2.putText(header, name, (i * 112 + 4, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.4, 0, 1)
     cv2.imwrite(str(path), np.vstack([header, *rows]))
+    return path

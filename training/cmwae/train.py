@@ -18,7 +18,7 @@ from sim.degradation import SCHEMES, corrupt_depth, corrupt_with_scheme, evaluat
 
 from ..checkpoint import load_train_state, load_weights, read_card, save_train_state, save_weights
 from ..data.tartanair import GrayDepthDataset
-from ..distributed import DistInfo, all_reduce_mean, init_distributed, shutdown
+from ..distributed import DistInfo, all_reduce_mean, init_distributed, shutdown, wall_budget_spent
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .loss import cmwae_loss
@@ -48,6 +48,7 @@ class CmwaeTrainConfig:
     log_every: int = 10
     val_images: int = 256
     resume: bool = False
+    max_wall_s: float | None = None  # stop (with a checkpoint) after this long
 
     def validate(self) -> None:
         if self.scheme not in CORRUPTION_SCHEMES:
@@ -139,6 +140,7 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
                                    "epoch": epoch, "corruption_rng": corruption_generator.get_state()})  # fmt: skip
 
     t_last, images = time.monotonic(), 0
+    t_start = t_last
     model.train()
     while step < total_steps:
         if sampler is not None:
@@ -167,6 +169,10 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
                 progress.update(1)
             if step % config.checkpoint_every == 0 and step < total_steps:
                 checkpoint()
+            if wall_budget_spent(config.max_wall_s, t_start, info, device):
+                log.info("wall-clock budget of %.0f s reached at step %d", config.max_wall_s, step)
+                total_steps = step
+                break
         epoch += 1
     checkpoint()
     if progress is not None:

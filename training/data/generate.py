@@ -8,7 +8,6 @@ import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
@@ -19,6 +18,7 @@ from sim.rotations import quat_from_euler
 from sim.world import WorldBatch, make_worlds
 
 from ..progress import Progress
+from .pngio import write_png
 from .tartanair import v1_paths
 
 DIFFICULTY = "Easy"
@@ -104,8 +104,7 @@ def generate_dataset(out_dir: str | Path, spec: DatasetSpec, camera: CameraModel
             image_path.parent.mkdir(parents=True, exist_ok=True)
             depth_path.parent.mkdir(parents=True, exist_ok=True)
             depth = frames.depth_m[k].numpy()
-            if not cv2.imwrite(str(image_path), frames.gray_u8[k].numpy()):
-                raise OSError(f"could not write {image_path}: is the disk full?")
+            write_png(image_path, frames.gray_u8[k].numpy())
             np.save(depth_path, depth.astype(np.float32))
             invalid_fracs.append(float(np.mean(~np.isfinite(depth) | (depth <= 0))))
             written += 1

@@ -7,7 +7,12 @@ V2: ``ENV/Data_{easy,hard}/P000/image_lcam_front/000000_lcam_front.png`` and
     stored as the bytes of a 4-channel uint8 PNG).
 
 ``cmnav dataset`` writes the V1 layout, so one loader reads ours and TartanAir's.  Images go
-through the contract's preprocessing (runtime.contract.images), exactly as in flight.
+through the contract's preprocessing (runtime.contract.images), exactly as in flight.  Without
+OpenCV (the offline GPU machine) PNGs are read by ``pngio``'s numpy reader and preprocessed by the
+contract's torch twin (``sim.preprocess_torch``, as the RL env does): gray within one level (1/255)
+of the contract's, depth equal except where an output pixel centre falls exactly between two source
+pixels (input sides that are multiples of 64 px, e.g. TartanAir's 640 px width), and the colour to
+gray conversion bit-exact.
 """
 
 from __future__ import annotations
@@ -16,12 +21,14 @@ import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from runtime.contract.images import preprocess_depth, preprocess_gray
+from runtime.contract.images import gray_from_bgr, preprocess_depth, preprocess_gray
+from sim.preprocess_torch import preprocess_depth_batch, preprocess_gray_batch
+
+from .pngio import PngError, opencv, read_png, write_png
 
 SPLITS = ("train", "val", "test")
 
@@ -104,16 +111,26 @@ def split_samples(samples: list[Sample], split: str, val_fraction: float = 0.1, 
 
 
 def read_gray_u8(path: Path) -> np.ndarray:
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise DatasetError(f"cannot read image {path}: missing or not a PNG/JPEG; re-generate or remove it")
+    try:
+        image = read_png(path)
+    except PngError as err:
+        raise DatasetError(f"{err}; re-generate or remove it") from err
+    if image.dtype != np.uint8:
+        raise DatasetError(f"image {path} is {image.dtype}, expected 8-bit gray or color")
     if image.ndim == 3 and image.shape[2] == 4:
         image = image[..., :3]
     if image.ndim == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-    if image.dtype != np.uint8:
-        raise DatasetError(f"image {path} is {image.dtype}, expected 8-bit gray or color")
+        image = _gray_from_bgr(np.ascontiguousarray(image))
     return image
+
+
+def _gray_from_bgr(bgr_u8: np.ndarray) -> np.ndarray:
+    """The contract's BGR -> gray, or without OpenCV its exact integer equivalent: OpenCV rounds
+    the BT.601 weights to 15-bit fixed point (checked equal over all 2^24 colours, OpenCV 5.0)."""
+    if opencv() is not None:
+        return gray_from_bgr(bgr_u8)
+    b, g, r = (bgr_u8[..., i].astype(np.uint32) for i in range(3))
+    return ((b * 3735 + g * 19235 + r * 9798 + (1 << 14)) >> 15).astype(np.uint8)
 
 
 def read_depth_m(path: Path, layout: str) -> np.ndarray:
@@ -121,11 +138,11 @@ def read_depth_m(path: Path, layout: str) -> np.ndarray:
         if layout == "v1":
             depth = np.load(path, allow_pickle=False)
         else:
-            rgba = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-            if rgba is None or rgba.ndim != 3 or rgba.shape[2] != 4 or rgba.dtype != np.uint8:
+            rgba = read_png(path)
+            if rgba.ndim != 3 or rgba.shape[2] != 4 or rgba.dtype != np.uint8:
                 raise DatasetError(f"{path} is not a 4-channel 8-bit PNG holding float32 depth (TartanAir V2)")
             depth = np.ascontiguousarray(rgba).view("<f4")[..., 0]
-    except (OSError, ValueError) as err:
+    except (OSError, ValueError) as err:  # PngError is a ValueError
         if isinstance(err, DatasetError):
             raise
         raise DatasetError(f"cannot read depth {path} ({err}); re-generate or remove it") from err
@@ -138,8 +155,7 @@ def write_v2_depth_png(path: Path, depth_m: np.ndarray) -> None:
     """float32 metres -> TartanAir V2's 4-channel PNG (for tests and conversions)."""
     rgba = np.ascontiguousarray(depth_m.astype("<f4")).view(np.uint8).reshape(*depth_m.shape, 4)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), rgba):
-        raise OSError(f"could not write {path}")
+    write_png(path, rgba)
 
 
 class GrayDepthDataset(Dataset):
@@ -158,6 +174,7 @@ class GrayDepthDataset(Dataset):
 
     def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
         sample = self.samples[i]
-        gray = preprocess_gray(read_gray_u8(sample.image_path))
-        depth = preprocess_depth(read_depth_m(sample.depth_path, sample.layout))
-        return torch.from_numpy(gray).unsqueeze(0), torch.from_numpy(depth).unsqueeze(0)
+        gray_u8, depth_m = read_gray_u8(sample.image_path), read_depth_m(sample.depth_path, sample.layout)
+        if opencv() is None:  # the contract's functions resize with cv2; its torch twin does not
+            return preprocess_gray_batch(torch.from_numpy(gray_u8)[None]), preprocess_depth_batch(torch.from_numpy(depth_m)[None])
+        return torch.from_numpy(preprocess_gray(gray_u8)).unsqueeze(0), torch.from_numpy(preprocess_depth(depth_m)).unsqueeze(0)

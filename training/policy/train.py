@@ -14,7 +14,7 @@ import torch.distributed as dist
 
 from ..checkpoint import checkpoint_fingerprint, load_train_state, save_train_state, save_weights
 from ..cmwae.train import load_cmwae
-from ..distributed import DistInfo, init_distributed, shutdown
+from ..distributed import DistInfo, init_distributed, shutdown, wall_budget_spent
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .env import CRASH, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig
@@ -145,7 +145,7 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
     while iteration < total_iterations:
         t_iter = time.monotonic()
         env.stage_seconds = dict.fromkeys(env.stage_seconds, 0.0)
-        rollout, hidden, starts, obs, episode_stats = _collect(model, env, obs, hidden, starts, normalizer, config.ppo)
+        rollout, hidden, starts, obs, episode_stats = collect_rollout(model, env, obs, hidden, starts, normalizer, config.ppo)
         t_collect = time.monotonic() - t_iter
         model.train()
         losses = ppo_update(model, optimizer, rollout, config.ppo, update_generator, reduce_grads)
@@ -166,7 +166,7 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
                             reward=episode_stats["mean_step_reward"])  # fmt: skip
         if iteration % config.checkpoint_every == 0 and iteration < total_iterations:
             checkpoint()
-        if config.max_wall_s is not None and time.monotonic() - t_start >= config.max_wall_s:
+        if wall_budget_spent(config.max_wall_s, t_start, info, device):
             log.info("wall-clock budget of %.0f s reached after %d env steps", config.max_wall_s, env_steps)
             break
     checkpoint()
@@ -178,7 +178,7 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
 
 
 @torch.no_grad()
-def _collect(model, env, obs, hidden, starts, normalizer, ppo: PpoConfig):
+def collect_rollout(model, env, obs, hidden, starts, normalizer, ppo: PpoConfig):
     model.eval()
     steps, n = ppo.rollout_steps, env.num_envs
     device = obs.device

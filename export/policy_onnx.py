@@ -1,0 +1,584 @@
+"""Trained checkpoints -> the runtime's ONNX file (DESIGN §6, issue 6).
+
+``cmnav export --encoder CKPT --policy CKPT -o model.onnx`` builds one graph for the runtime's
+control step from the CMWAE encoder (not its decoder) and the policy::
+
+    latent = encoder(gray, depth)                        # [1, 64]
+    obs = concat(state, latent)                          # [1, 79], the contract's layout
+    action, _, hidden_next = policy.step(obs, hidden)    # action = the Gaussian's mean [1, 3]
+
+with the runtime's step signature (``runtime.contract.constants``: inputs gray, depth, state,
+hidden; outputs action, hidden_next, latent; batch 1), opset 17, exported by torch's TorchScript
+exporter (``dynamo=False``: the dynamo exporter needs onnxscript, which neither this machine nor
+the GPU machine has).  The policy's observation normaliser is inside the graph.
+
+The file carries the contract (``runtime.contract.contract_metadata``) and, under ``cmnav.*``
+keys: normalisation, action scaling, latent and GRU sizes, and provenance (git commit, both
+checkpoints' fingerprints and cards' meta: data, seed, steps, eval tables), plus the parity
+measured at export.  A policy trained on another encoder (its card's ``meta.encoder_fingerprint``
+differs from the given encoder's) is refused.
+
+Parity: ONNX Runtime (CPU) against the torch networks on random inputs and, with ``recorded``, on
+the camera frames and states of a flight log, the GRU state carried from step to step as in
+flight; max abs error of action, hidden_next and latent, bounded by ``PARITY_TOLERANCE`` (fp32).
+Then the runtime's own loader (:class:`runtime.model.PolicyModel`) must accept the file.
+
+Variants (``variants``): ``fp16`` (weights and activations in float16, inputs and outputs kept
+float32: for GPU execution providers) and ``int8`` (static QDQ quantisation of Conv/Gemm/MatMul,
+calibrated on the recorded frames, or on random inputs without a log).  Each is written next to
+the fp32 file (``model.fp16.onnx``, ``model.int8.onnx``) with its parity cost against the fp32
+graph in action space; it is not bounded by ``PARITY_TOLERANCE`` (that is the point of measuring
+it).  Whether a variant is worth flying is for ``cmnav bench runtime`` to show: it times every
+variant it finds next to the model.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import subprocess
+import warnings
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import torch
+from torch import Tensor, nn
+
+from runtime.contract import constants as c
+from runtime.contract import contract_metadata
+from training.checkpoint import CheckpointError, checkpoint_fingerprint
+from training.cmwae.train import load_cmwae
+from training.policy.network import ActorCritic, load_policy
+
+from .variants import VARIANTS, variant_path
+
+log = logging.getLogger(__name__)
+
+OPSET = 17
+PARITY_TOLERANCE = 1e-4  # max abs error of any output, fp32 ONNX Runtime vs torch
+RANDOM_SAMPLES = 8
+RECORDED_SAMPLES = 64
+INPUT_NAMES = (c.ONNX_INPUT_GRAY, c.ONNX_INPUT_DEPTH, c.ONNX_INPUT_STATE, c.ONNX_INPUT_HIDDEN)
+OUTPUT_NAMES = (c.ONNX_OUTPUT_ACTION, c.ONNX_OUTPUT_HIDDEN, c.ONNX_OUTPUT_LATENT)
+# Metadata keys besides the contract's (all values are strings; JSON where structured).
+KEY_MODEL = "cmnav.model"
+KEY_VARIANT = "cmnav.variant"
+KEY_NORMALISATION = "cmnav.normalisation"
+KEY_ACTION_SCALING = "cmnav.action_scaling"
+KEY_LATENT_DIM = "cmnav.latent_dim"
+KEY_HIDDEN_SIZE = "cmnav.gru_hidden_size"
+KEY_GIT_COMMIT = "cmnav.git_commit"
+KEY_GIT_DIRTY = "cmnav.git_dirty"
+KEY_ENCODER = "cmnav.encoder"
+KEY_POLICY = "cmnav.policy"
+KEY_PROVENANCE = "cmnav.provenance"
+KEY_PARITY = "cmnav.parity"
+_REPO_ROOT = Path(__file__).resolve().parent.parent
+
+
+class ExportError(ValueError):
+    """The checkpoints cannot be exported, or the exported graph failed a check; the message says why."""
+
+
+class EncoderMismatchError(ExportError):
+    """The policy was trained on another encoder than the one given."""
+
+
+class ParityError(ExportError):
+    """ONNX Runtime's outputs differ from torch's by more than the tolerance."""
+
+
+class RuntimeStep(nn.Module):
+    """The runtime's control step as one module: (gray, depth [B, 1, 224, 224], state [B, 15],
+    hidden [B, H]) -> (action mean [B, 3], hidden_next [B, H], latent [B, 64])."""
+
+    def __init__(self, encoder: nn.Module, policy: ActorCritic) -> None:
+        super().__init__()
+        self.encoder = encoder
+        self.policy = policy
+
+    def forward(self, gray: Tensor, depth: Tensor, state: Tensor, hidden: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        latent = self.encoder(gray, depth)
+        action, _value, hidden_next = self.policy.step(torch.cat([state, latent], dim=1), hidden)
+        return action, hidden_next, latent
+
+
+@dataclass
+class Networks:
+    """The two checkpoints as one step module (eval mode, fp32, CPU) with what the metadata needs."""
+
+    step: RuntimeStep
+    encoder_dir: Path
+    policy_dir: Path
+    encoder_card: dict
+    policy_card: dict
+    encoder_fingerprint: str
+    policy_fingerprint: str
+
+    @property
+    def hidden_size(self) -> int:
+        return self.step.policy.hidden_size
+
+
+def load_networks(encoder_dir: str | Path, policy_dir: str | Path) -> Networks:
+    """Load the CMWAE encoder and the policy; raise :class:`EncoderMismatchError` when the policy's
+    card names another encoder (``meta.encoder_fingerprint``), :class:`ExportError` when a
+    checkpoint is missing or of the wrong kind."""
+    encoder_dir, policy_dir = Path(encoder_dir), Path(policy_dir)
+    try:
+        encoder_fp = checkpoint_fingerprint(encoder_dir)
+        policy_fp = checkpoint_fingerprint(policy_dir)
+        policy, policy_card = load_policy(policy_dir)
+        trained_on = policy_card.get("meta", {}).get("encoder_fingerprint")
+        if trained_on is not None and trained_on != encoder_fp:
+            raise EncoderMismatchError(
+                f"the policy {policy_dir} was trained on the encoder with fingerprint {trained_on}, but the encoder "
+                f"given ({encoder_dir}) has fingerprint {encoder_fp}: pass --encoder the checkpoint the policy was "
+                "trained with (its fingerprint is in the policy's model.json, meta.encoder_fingerprint), or train "
+                "the policy on this encoder"
+            )
+        cmwae, encoder_card = load_cmwae(encoder_dir)
+    except CheckpointError as err:
+        raise ExportError(str(err)) from err
+    if trained_on is None:
+        log.warning("%s does not name the encoder it was trained on (meta.encoder_fingerprint); cannot check it", policy_dir)
+    step = RuntimeStep(cmwae.encoder, policy).float().eval()
+    return Networks(step, encoder_dir, policy_dir, encoder_card, policy_card, encoder_fp, policy_fp)
+
+
+def git_commit() -> tuple[str, bool | None]:
+    """(HEAD commit of this repository, whether the working tree has changes); ("unknown", None)
+    outside a git checkout."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=_REPO_ROOT, capture_output=True, text=True, check=True, timeout=10)
+        status = subprocess.run(["git", "status", "--porcelain"], cwd=_REPO_ROOT, capture_output=True, text=True, check=True, timeout=30)
+    except (OSError, subprocess.SubprocessError):
+        return "unknown", None
+    return head.stdout.strip(), bool(status.stdout.strip())
+
+
+def export_metadata(nets: Networks, variant: str = "fp32") -> dict[str, str]:
+    """Every ``metadata_props`` entry of an exported policy (strings; JSON where structured)."""
+    commit, dirty = git_commit()
+    policy_meta = nets.policy_card.get("meta", {})
+    encoder_meta = nets.encoder_card.get("meta", {})
+    metadata = contract_metadata()
+    metadata.update({
+        KEY_MODEL: "policy",
+        KEY_VARIANT: variant,
+        KEY_NORMALISATION: json.dumps({
+            "gray": "uint8 (BGR -> BT.601 luma) resized bilinear to 224x224, / 255",
+            "gray_range": [0.0, 1.0],
+            "depth": "metres, resized nearest to 224x224, / depth_max_m clipped to [0, 1], invalid (0, NaN) = depth_invalid_value",
+            "depth_max_m": c.DEPTH_MAX_M,
+            "depth_invalid_value": c.DEPTH_INVALID_VALUE,
+            "image_size_px": c.IMAGE_SIZE_PX,
+            "observation": "state (15) then latent (64); the policy's running normaliser is inside the graph",
+        }, sort_keys=True),
+        KEY_ACTION_SCALING: json.dumps({
+            "clip": [-1.0, 1.0],
+            "speed_m_s": "(a1 + 1) * max_speed_m_s / 2",
+            "inclination_rad": "a2 * max_inclination_rad",
+            "yaw_rate_rad_s": "a3 * max_yaw_rate_rad_s",
+            "max_speed_m_s": c.MAX_SPEED_M_S,
+            "max_inclination_rad": c.MAX_INCLINATION_RAD,
+            "max_yaw_rate_rad_s": c.MAX_YAW_RATE_RAD_S,
+        }, sort_keys=True),
+        KEY_LATENT_DIM: str(c.LATENT_DIM),
+        KEY_HIDDEN_SIZE: str(nets.hidden_size),
+        KEY_GIT_COMMIT: commit,
+        KEY_GIT_DIRTY: json.dumps(dirty),
+        KEY_ENCODER: json.dumps(_card_summary(nets.encoder_card, nets.encoder_fingerprint, nets.encoder_dir), sort_keys=True),
+        KEY_POLICY: json.dumps(_card_summary(nets.policy_card, nets.policy_fingerprint, nets.policy_dir), sort_keys=True),
+        KEY_PROVENANCE: json.dumps({
+            "policy_data": "simulated rooms (sim.world), curriculum level reached: "
+                           f"{policy_meta.get('curriculum_level')}",
+            "policy_seed": policy_meta.get("seed"),
+            "policy_env_steps": policy_meta.get("env_steps"),
+            "policy_eval": _eval_table(nets.policy_dir / "eval" / "table2.json", "cells"),
+            "encoder_data": encoder_meta.get("dataset"),
+            "encoder_seed": encoder_meta.get("train", {}).get("seed"),
+            "encoder_steps": nets.encoder_card.get("step"),
+            "encoder_eval": _eval_table(nets.encoder_dir / "eval" / "table1.json", "rows")
+                            or {k: v for k, v in encoder_meta.items() if k.startswith("val/")} or None,
+        }, sort_keys=True),
+    })  # fmt: skip
+    return metadata
+
+
+def _eval_table(path: Path, key: str) -> list | None:
+    """The rows of a Table I/II file written by `cmnav eval` next to a checkpoint, if any."""
+    try:
+        return json.loads(path.read_text())[key]
+    except (OSError, ValueError, KeyError):
+        return None
+
+
+def _card_summary(card: dict, fingerprint: str, path: Path) -> dict:
+    return {"path": str(path), "fingerprint": fingerprint, "kind": card.get("kind"), "step": card.get("step"),
+            "config": card.get("config"), "meta": card.get("meta", {})}  # fmt: skip
+
+
+def export_step_onnx(step: RuntimeStep, path: str | Path, hidden_size: int) -> onnx.ModelProto:
+    """Trace ``step`` to ONNX (opset 17, batch 1, fp32) and write it to ``path``; returns the model.
+
+    The TorchScript exporter drops graph inputs the computation does not read (gray, for a
+    depth-only encoder); they are put back, so every model has the runtime's four inputs."""
+    args = (
+        torch.zeros(1, 1, c.IMAGE_SIZE_PX, c.IMAGE_SIZE_PX),
+        torch.zeros(1, 1, c.IMAGE_SIZE_PX, c.IMAGE_SIZE_PX),
+        torch.zeros(1, c.STATE_DIM),
+        torch.zeros(1, hidden_size),
+    )
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with warnings.catch_warnings():
+        # The TorchScript exporter is deprecated in favour of dynamo, which needs onnxscript.
+        warnings.simplefilter("ignore", DeprecationWarning)
+        torch.onnx.export(
+            step, args, str(path), input_names=list(INPUT_NAMES), output_names=list(OUTPUT_NAMES),
+            opset_version=OPSET, do_constant_folding=True, dynamo=False,
+        )  # fmt: skip
+    model = onnx.load(str(path))
+    _restore_inputs(model, hidden_size)
+    model.producer_name = "cmnav"
+    onnx.checker.check_model(model, full_check=True)
+    onnx.save(model, str(path))
+    return model
+
+
+def _restore_inputs(model: onnx.ModelProto, hidden_size: int) -> None:
+    shapes = {
+        c.ONNX_INPUT_GRAY: [1, 1, c.IMAGE_SIZE_PX, c.IMAGE_SIZE_PX],
+        c.ONNX_INPUT_DEPTH: [1, 1, c.IMAGE_SIZE_PX, c.IMAGE_SIZE_PX],
+        c.ONNX_INPUT_STATE: [1, c.STATE_DIM],
+        c.ONNX_INPUT_HIDDEN: [1, hidden_size],
+    }
+    present = {i.name: i for i in model.graph.input}
+    if set(present) == set(INPUT_NAMES):
+        return
+    ordered = [present.get(name) or onnx.helper.make_tensor_value_info(name, onnx.TensorProto.FLOAT, shapes[name]) for name in INPUT_NAMES]
+    log.info("inputs %s are not read by the networks; kept in the signature", sorted(set(INPUT_NAMES) - set(present)))
+    del model.graph.input[:]
+    model.graph.input.extend(ordered)
+
+
+def set_metadata(model: onnx.ModelProto, metadata: dict[str, str]) -> None:
+    """Replace ``model``'s ``metadata_props`` with ``metadata``."""
+    del model.metadata_props[:]
+    onnx.helper.set_model_props(model, metadata)
+
+
+# ---------------------------------------------------------------------------- parity inputs
+
+
+@dataclass
+class StepInputs:
+    """N step inputs, float32: gray, depth [N, 1, 224, 224], state [N, 15], hidden [N, H]."""
+
+    gray: np.ndarray
+    depth: np.ndarray
+    state: np.ndarray
+    hidden: np.ndarray
+    source: str
+
+    def __len__(self) -> int:
+        return len(self.state)
+
+    def feeds(self) -> Iterator[dict[str, np.ndarray]]:
+        """One batch-1 ONNX Runtime feed per sample."""
+        for i in range(len(self)):
+            yield {
+                c.ONNX_INPUT_GRAY: self.gray[i : i + 1], c.ONNX_INPUT_DEPTH: self.depth[i : i + 1],
+                c.ONNX_INPUT_STATE: self.state[i : i + 1], c.ONNX_INPUT_HIDDEN: self.hidden[i : i + 1],
+            }  # fmt: skip
+
+    def split(self) -> tuple[StepInputs, StepInputs]:
+        """(first half, second half): int8 is calibrated on one and its parity measured on the other."""
+        half = max(1, len(self) // 2)
+        first, second = slice(0, half), slice(half, None)
+        return (
+            StepInputs(self.gray[first], self.depth[first], self.state[first], self.hidden[first], f"{self.source}, first {half}"),
+            StepInputs(self.gray[second], self.depth[second], self.state[second], self.hidden[second],
+                       f"{self.source}, last {len(self) - half}"),
+        )  # fmt: skip
+
+
+def random_inputs(count: int, hidden_size: int, seed: int = 0) -> StepInputs:
+    """Inputs in the contract's ranges: gray in [0, 1]; depth in [0, 1] with about 20% invalid
+    (0) pixels; state: unit goal vector, distance in [0, 1], roll/pitch within 0.3 rad, velocities
+    and rates within 2, previous action in [-1, 1]; hidden in (-1, 1) like a GRU's."""
+    rng = np.random.default_rng(seed)
+    size = (count, 1, c.IMAGE_SIZE_PX, c.IMAGE_SIZE_PX)
+    gray = rng.random(size, dtype=np.float32)
+    depth = rng.random(size, dtype=np.float32)
+    depth[rng.random(size) < 0.2] = c.DEPTH_INVALID_VALUE
+    state = np.concatenate([
+        _unit_rows(rng, count), rng.random((count, 1)), rng.uniform(-0.3, 0.3, (count, 2)),
+        rng.uniform(-2.0, 2.0, (count, 6)), rng.uniform(-1.0, 1.0, (count, 3)),
+    ], axis=1).astype(np.float32)  # fmt: skip
+    hidden = rng.uniform(-0.9, 0.9, (count, hidden_size)).astype(np.float32)
+    return StepInputs(gray, depth, state, hidden, source=f"random (seed {seed})")
+
+
+def _unit_rows(rng: np.random.Generator, count: int) -> np.ndarray:
+    v = rng.normal(size=(count, 3))
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def recorded_inputs(log_path: str | Path, step: RuntimeStep, count: int = RECORDED_SAMPLES) -> StepInputs:
+    """The first ``count`` policy steps of a flight log (``cmnav fly`` / ``cmnav sitl``): its
+    camera frames through the contract's preprocessing, its recorded 15-value states, and the GRU
+    state carried from step to step by ``step`` (torch), reset where the flight reset it.  Raises
+    :class:`runtime.log_reader.ReplayError` for a file that is not a cmnav flight log."""
+    from runtime.contract import preprocess_depth, preprocess_gray
+    from runtime.log_reader import FRAME_TOPICS, STEP_TOPICS, FlightLogReader, LoggedFrame, ReplayError
+
+    reader = FlightLogReader(log_path)
+    frames: dict[int, LoggedFrame] = {}
+    gray, depth, state, hidden = [], [], [], []
+    h = torch.zeros(1, step.policy.hidden_size)
+    epoch = None
+    for item in reader.records(FRAME_TOPICS + STEP_TOPICS):
+        if isinstance(item, LoggedFrame):
+            frames[item.t_capture_ns] = item
+            continue
+        frame = frames.pop(item.t_capture_ns, None)
+        if frame is None:
+            continue
+        if item.hidden_epoch != epoch:
+            h, epoch = torch.zeros_like(h), item.hidden_epoch
+        g = preprocess_gray(frame.gray_u8)[None, None]
+        d = preprocess_depth(frame.depth_m)[None, None]
+        s = item.observation[: c.STATE_DIM].astype(np.float32)[None]
+        gray.append(g)
+        depth.append(d)
+        state.append(s)
+        hidden.append(h.numpy().copy())
+        with torch.no_grad():
+            _, h, _ = step(torch.from_numpy(g), torch.from_numpy(d), torch.from_numpy(s), h)
+        if len(state) >= count:
+            break
+        frames = {t: f for t, f in frames.items() if t > item.t_capture_ns}  # skipped frames: never a step's
+    if not state:
+        reader.check_topics(FRAME_TOPICS + STEP_TOPICS, "export parity needs recorded camera frames and policy steps")
+        raise ReplayError(f"{reader.path} holds no policy step with its camera frame")
+    return StepInputs(
+        np.concatenate(gray), np.concatenate(depth), np.concatenate(state), np.concatenate(hidden).astype(np.float32),
+        source=f"recorded ({len(state)} steps of {reader.path})",
+    )  # fmt: skip
+
+
+# ---------------------------------------------------------------------------- parity
+
+
+def torch_outputs(step: RuntimeStep, inputs: StepInputs) -> dict[str, np.ndarray]:
+    """The torch step's outputs per sample (batch 1, as the runtime runs), stacked: name -> [N, ...]."""
+    out: dict[str, list[np.ndarray]] = {name: [] for name in OUTPUT_NAMES}
+    with torch.no_grad():
+        for feed in inputs.feeds():
+            values = step(*(torch.from_numpy(feed[name]) for name in INPUT_NAMES))
+            for name, value in zip(OUTPUT_NAMES, values):
+                out[name].append(value.numpy())
+    return {name: np.concatenate(v) for name, v in out.items()}
+
+
+def onnx_outputs(session: ort.InferenceSession, inputs: StepInputs) -> dict[str, np.ndarray]:
+    """An ONNX Runtime session's outputs per sample, stacked: name -> [N, ...]."""
+    out: dict[str, list[np.ndarray]] = {name: [] for name in OUTPUT_NAMES}
+    for feed in inputs.feeds():
+        for name, value in zip(OUTPUT_NAMES, session.run(list(OUTPUT_NAMES), feed)):
+            out[name].append(value)
+    return {name: np.concatenate(v) for name, v in out.items()}
+
+
+def max_abs_errors(reference: dict[str, np.ndarray], outputs: dict[str, np.ndarray]) -> dict[str, float]:
+    """name -> max |output - reference| (inf where either is not finite)."""
+    errors = {}
+    for name in OUTPUT_NAMES:
+        diff = np.abs(outputs[name].astype(np.float64) - reference[name].astype(np.float64))
+        errors[name] = float(np.nan_to_num(diff, nan=np.inf).max())
+    return errors
+
+
+def cpu_session(model: str | Path | bytes, threads: int = 0) -> ort.InferenceSession:
+    """An ONNX Runtime CPU session (quiet; ``threads`` intra-op threads, 0 = ORT's default)."""
+    options = ort.SessionOptions()
+    options.log_severity_level = 3
+    options.intra_op_num_threads = threads
+    source = model if isinstance(model, bytes) else str(model)
+    return ort.InferenceSession(source, sess_options=options, providers=["CPUExecutionProvider"])
+
+
+# ---------------------------------------------------------------------------- variants
+
+
+def make_fp16(model: onnx.ModelProto) -> onnx.ModelProto:
+    """Weights and activations in float16, graph inputs and outputs kept float32 (the runtime's
+    signature); for GPU execution providers (ONNX Runtime's CPU kernels mostly run fp16 through casts)."""
+    from onnxruntime.transformers.float16 import convert_float_to_float16
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # "the model has values beyond fp16 range": clamped, reported by parity
+        return convert_float_to_float16(model, keep_io_types=True, disable_shape_infer=False)
+
+
+def make_int8(fp32_path: str | Path, out_path: str | Path, calibration: StepInputs) -> None:
+    """Static int8 QDQ quantisation (uint8 activations, int8 per-channel weights) of Conv, Gemm
+    and MatMul, activation ranges calibrated (min/max) on ``calibration``, after ONNX Runtime's
+    recommended pre-processing (shape inference and graph optimisation)."""
+    import tempfile
+
+    from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    class Calibration(CalibrationDataReader):
+        def __init__(self) -> None:
+            self._feeds = calibration.feeds()
+
+        def get_next(self) -> dict[str, np.ndarray] | None:
+            return next(self._feeds, None)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        prepared = Path(tmp) / "prepared.onnx"
+        quant_pre_process(str(fp32_path), str(prepared), skip_symbolic_shape=True)
+        quantize_static(
+            str(prepared), str(out_path), Calibration(), quant_format=QuantFormat.QDQ,
+            op_types_to_quantize=["Conv", "Gemm", "MatMul"], per_channel=True,
+            activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
+        )  # fmt: skip
+
+
+# ---------------------------------------------------------------------------- the command
+
+
+@dataclass
+class ExportReport:
+    """What ``cmnav export`` did: files, fingerprints, parity (max abs error per output and input
+    set), variants with their parity cost against the fp32 graph."""
+
+    path: str
+    encoder_fingerprint: str
+    policy_fingerprint: str
+    hidden_size: int
+    git_commit: str
+    tolerance: float
+    parity: dict[str, dict[str, float]] = field(default_factory=dict)
+    variants: dict[str, dict] = field(default_factory=dict)
+    runtime_loader: str = ""
+
+    def format(self) -> str:
+        lines = [
+            f"wrote {self.path} (GRU hidden {self.hidden_size}; encoder {self.encoder_fingerprint}, policy "
+            f"{self.policy_fingerprint}, commit {self.git_commit[:12]})",
+            f"parity, ONNX Runtime CPU vs torch, max abs error (bound {self.tolerance:g}):",
+        ]
+        for source, errors in self.parity.items():
+            lines.append(f"  {source}: " + ", ".join(f"{name} {errors[name]:.2e}" for name in OUTPUT_NAMES))
+        for name, variant in self.variants.items():
+            errors, scale = variant["max_abs_error_vs_fp32"], variant["fp32_max_abs"]
+            calibrated = f", calibrated on {variant['calibration']}" if variant.get("calibration") else ""
+            lines.append(
+                f"variant {name}: {variant['path']}{calibrated}; max abs error vs fp32 on {variant['inputs']} "
+                "(and the fp32 outputs' max abs): "
+                + ", ".join(f"{n} {errors[n]:.2e} ({scale[n]:.2e})" for n in OUTPUT_NAMES)
+                + "; time it with `cmnav bench runtime` and keep it only where it is faster"
+            )
+        lines.append(f"runtime loader: {self.runtime_loader}")
+        return "\n".join(lines)
+
+    def to_json(self) -> dict:
+        return dict(self.__dict__)
+
+
+def export_policy(
+    encoder_dir: str | Path,
+    policy_dir: str | Path,
+    out_path: str | Path,
+    recorded: str | Path | None = None,
+    variants: tuple[str, ...] = (),
+    random_samples: int = RANDOM_SAMPLES,
+    recorded_samples: int = RECORDED_SAMPLES,
+    tolerance: float = PARITY_TOLERANCE,
+) -> ExportReport:
+    """Export, check parity, write the variants, and load the result with the runtime's loader.
+
+    Raises :class:`EncoderMismatchError`, :class:`ExportError` (bad checkpoint), :class:`ParityError`
+    (the file is renamed ``*.parity-failed``, named in the message, for inspection) or the runtime
+    loader's error.
+    """
+    from runtime.model import PolicyModel
+
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown:
+        raise ExportError(f"unknown variant(s) {unknown}: choose from {list(VARIANTS)}")
+    nets = load_networks(encoder_dir, policy_dir)
+    out_path = Path(out_path)
+    log.info("exporting encoder %s + policy %s to %s", nets.encoder_dir, nets.policy_dir, out_path)
+    model = export_step_onnx(nets.step, out_path, nets.hidden_size)
+
+    input_sets = [random_inputs(random_samples, nets.hidden_size)]
+    if recorded is not None:
+        input_sets.append(recorded_inputs(recorded, nets.step, recorded_samples))
+    session = cpu_session(out_path)
+    parity: dict[str, dict[str, float]] = {}
+    for inputs in input_sets:
+        errors = max_abs_errors(torch_outputs(nets.step, inputs), onnx_outputs(session, inputs))
+        parity[inputs.source] = errors
+        log.info("parity on %s: %s", inputs.source, errors)
+    worst = max(max(e.values()) for e in parity.values())
+
+    metadata = export_metadata(nets)
+    metadata[KEY_PARITY] = json.dumps({"tolerance": tolerance, "max_abs_error": parity}, sort_keys=True)
+    set_metadata(model, metadata)
+    onnx.save(model, str(out_path))
+    commit = metadata[KEY_GIT_COMMIT]
+    report = ExportReport(str(out_path), nets.encoder_fingerprint, nets.policy_fingerprint, nets.hidden_size, commit, tolerance, parity)
+    if not worst <= tolerance:
+        failed = out_path.with_name(out_path.name + ".parity-failed")
+        out_path.replace(failed)  # not under a name anything would fly
+        raise ParityError(
+            f"ONNX Runtime differs from torch by {worst:.3e} > {tolerance:g} ({parity}): the graph does not compute "
+            f"what the networks do; kept for inspection as {failed}, do not fly it (report it with the checkpoints)"
+        )
+
+    PolicyModel(out_path)  # the runtime's own loader: signature and contract
+    report.runtime_loader = "runtime.model.PolicyModel accepts " + str(out_path)
+
+    for stale in (v for v in VARIANTS if v not in variants and variant_path(out_path, v).exists()):
+        log.warning("%s is from an earlier export, not of this model: delete it (cmnav bench runtime skips it)",
+                    variant_path(out_path, stale))  # fmt: skip
+    if not variants:
+        return report
+    # int8 is calibrated on the first half of the recorded steps (of other random inputs without a
+    # log) and every variant's parity is measured on the other half, which calibration never saw.
+    if recorded is not None:
+        calibration, held_out = input_sets[-1].split()
+    else:
+        calibration, held_out = random_inputs(random_samples, nets.hidden_size, seed=1), input_sets[0]
+    fp32_reference = onnx_outputs(session, held_out)
+    reference_max = {name: float(np.abs(v).max()) for name, v in fp32_reference.items()}
+    for variant in variants:
+        path = variant_path(out_path, variant)
+        if variant == "fp16":
+            onnx.save(make_fp16(model), str(path))
+        else:
+            make_int8(out_path, path, calibration)
+        variant_model = onnx.load(str(path))
+        variant_metadata = export_metadata(nets, variant)
+        errors = max_abs_errors(fp32_reference, onnx_outputs(cpu_session(path), held_out))
+        parity_info = {"reference": "fp32 graph", "inputs": held_out.source, "max_abs_error": errors, "fp32_max_abs": reference_max}
+        if variant == "int8":
+            parity_info["calibration"] = calibration.source
+        variant_metadata[KEY_PARITY] = json.dumps(parity_info, sort_keys=True)
+        set_metadata(variant_model, variant_metadata)
+        onnx.save(variant_model, str(path))
+        PolicyModel(path)
+        report.variants[variant] = {"path": str(path), "inputs": held_out.source, "max_abs_error_vs_fp32": errors,
+                                    "fp32_max_abs": reference_max, "calibration": parity_info.get("calibration")}  # fmt: skip
+        log.info("variant %s: %s, max abs error vs fp32 %s", variant, path, errors)
+    return report

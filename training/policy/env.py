@@ -8,8 +8,9 @@ optionally corrupt the depth (``sim.degradation``), encode with the frozen encod
 map the action to a body velocity command (the contract's mapping) that the velocity-tracking
 dynamics follow for one control period, with collisions checked every physics sub-step.
 
-Episodes end in success (within 1 m of the goal), crash (any contact) or timeout (10 s); an
-ended env is reset at once to a new room at the curriculum's current level (training), or
+Episodes end in a crash (any contact) or after 10 s: success if the vehicle is then within 1 m of
+the goal, else timeout (Aerial Gym's rule, which its reward assumes: a policy is paid for
+staying at the goal, so reaching it must not end the episode).  An ended env is reset at once to a new room at the curriculum's current level (training), or
 stays ended (evaluation, ``auto_reset=False``).
 """
 
@@ -383,8 +384,11 @@ class NavEnv:
         t0 = self._timed("physics", t0)
 
         dist_m = torch.linalg.vector_norm(self.world.goal_m - state.pos_enu_m, dim=-1)
-        success = (dist_m < GOAL_REACHED_RADIUS_M) & ~crashed & self.active
-        timeout = (self.step_count >= cfg.max_steps) & ~crashed & ~success & self.active
+        # As in Aerial Gym, whose reward this is: reaching the goal does not end the episode (the
+        # reward pays for staying there); at 10 s it ends in success within 1 m, else timeout.
+        ended = (self.step_count >= cfg.max_steps) & ~crashed & self.active
+        success = ended & (dist_m < GOAL_REACHED_RADIUS_M)
+        timeout = ended & ~success
         outcome = torch.full((self.num_envs,), RUNNING, dtype=torch.long, device=self.device)
         outcome[success] = SUCCESS
         outcome[crashed] = CRASH

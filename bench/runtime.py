@@ -603,6 +603,11 @@ def bench_warnings(result: dict) -> list[str]:
             "competed for the cores, so times (above all at 2 threads and in SITL) are inflated and p99s are the other "
             "work's; rerun on an idle machine for the targets"
         )
+    if result["variant"] != "fp32":
+        out.append(
+            f"the model is the {result['variant']} variant: its ONNX / ideal compares it with the FP32 peak, which does not "
+            "bound it (int8 runs on the integer dot-product units); compare the fp32 model's for the target"
+        )
     cpu = result["cpu"]
     if cpu["peak_gflop_s"] != cpu["peak_gflop_s_clock_read"]:
         out.append(

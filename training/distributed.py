@@ -5,9 +5,12 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import dataclass
+from typing import Callable, TypeVar
 
 import torch
 import torch.distributed as dist
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -55,6 +58,15 @@ def wall_budget_spent(max_wall_s: float | None, t_start: float, info: DistInfo, 
         return False
     over = torch.tensor([1.0 if time.monotonic() - t_start >= max_wall_s else 0.0], device=device)
     return bool(all_reduce_mean(over, info) > 0)
+
+
+def run_distributed(device: str, train: Callable[[DistInfo, torch.device], T]) -> T:
+    """``train(info, device)`` inside the process group torchrun describes (if any), left after."""
+    info, torch_device = init_distributed(device)
+    try:
+        return train(info, torch_device)
+    finally:
+        shutdown(info)
 
 
 def shutdown(info: DistInfo) -> None:

@@ -18,7 +18,7 @@ from sim.degradation import SCHEMES, corrupt_depth, corrupt_with_scheme, evaluat
 
 from ..checkpoint import load_train_state, load_weights, read_card, save_train_state, save_weights
 from ..data.tartanair import GrayDepthDataset
-from ..distributed import DistInfo, all_reduce_mean, init_distributed, shutdown, wall_budget_spent
+from ..distributed import DistInfo, all_reduce_mean, run_distributed, wall_budget_spent
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .loss import cmwae_loss
@@ -90,11 +90,7 @@ def validation_mse(model: Cmwae, loader: DataLoader, device: torch.device, cover
 def train_cmwae(config: CmwaeTrainConfig) -> Path:
     """Train; returns the checkpoint directory."""
     config.validate()
-    info, device = init_distributed(config.device)
-    try:
-        return _train(config, info, device)
-    finally:
-        shutdown(info)
+    return run_distributed(config.device, lambda info, device: _train(config, info, device))
 
 
 def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Path:

@@ -14,7 +14,7 @@ import torch.distributed as dist
 
 from ..checkpoint import checkpoint_fingerprint, load_train_state, save_train_state, save_weights
 from ..cmwae.train import load_cmwae
-from ..distributed import DistInfo, init_distributed, shutdown, wall_budget_spent
+from ..distributed import DistInfo, run_distributed, wall_budget_spent
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .env import CRASH, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig
@@ -58,11 +58,7 @@ class PolicyTrainConfig:
 def train_policy(config: PolicyTrainConfig) -> Path:
     """Train; returns the checkpoint directory."""
     config.validate()
-    info, device = init_distributed(config.device)
-    try:
-        return _train(config, info, device)
-    finally:
-        shutdown(info)
+    return run_distributed(config.device, lambda info, device: _train(config, info, device))
 
 
 def _reduce_grads(model: ActorCritic, info: DistInfo):

@@ -29,6 +29,8 @@ from sim.render import DEPTH_REL_TOLERANCE, GRAY_TOLERANCE_LEVELS, RenderOutput,
 from sim.rotations import quat_from_euler
 from sim.world import WorldBatch, make_worlds
 
+from .device import device_name, synchronize
+
 log = logging.getLogger(__name__)
 
 
@@ -134,7 +136,7 @@ def run_sim_bench(config: SimBenchConfig = SimBenchConfig()) -> dict:
         "camera_px": [camera.width_px, camera.height_px],
         "threads": threads,
         "load_average_1min": load_average,
-        "devices": [_device_name(d) for d in devices],
+        "devices": [device_name(d) for d in devices],
         "reference_device": "cpu",
         "tolerance": {"depth_rel": DEPTH_REL_TOLERANCE, "gray_levels": GRAY_TOLERANCE_LEVELS},
         "cells": [asdict(cell) for cell in cells],
@@ -170,24 +172,15 @@ def _time_calls(
     """Median and fastest seconds per call over at least ``min_calls`` calls and ``min_time_s``
     seconds, after one warm-up call; and the last call's output."""
     out = call()
-    _synchronize(device)
+    synchronize(device)
     times = []
     start = time.perf_counter()
     while len(times) < min_calls or time.perf_counter() - start < min_time_s:
         t0 = time.perf_counter()
         out = call()
-        _synchronize(device)
+        synchronize(device)
         times.append(time.perf_counter() - t0)
     return statistics.median(times), min(times), out
-
-
-def _synchronize(device: str) -> None:
-    if device == "cuda":
-        torch.cuda.synchronize()
-
-
-def _device_name(device: str) -> str:
-    return f"cuda ({torch.cuda.get_device_name()})" if device == "cuda" else "cpu"
 
 
 def _mismatch(reference: RenderOutput, fast: RenderOutput) -> dict[str, float | int]:

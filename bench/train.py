@@ -21,6 +21,8 @@ from training.policy.network import POLICY_SIZES, ActorCritic
 from training.policy.ppo import PpoConfig, ReturnNormalizer, ppo_update
 from training.policy.train import collect_rollout
 
+from .device import device_name, synchronize
+
 STAGES = ("render", "preprocess", "encode", "physics", "policy", "ppo_update")
 
 
@@ -68,12 +70,12 @@ def run_train_bench(config: TrainBenchConfig) -> dict:
         env.stage_seconds = dict.fromkeys(env.stage_seconds, 0.0)
         t0 = time.perf_counter()
         rollout, hidden, starts, obs, _ = collect_rollout(policy, env, obs, hidden, starts, normalizer, ppo)
-        _synchronize(device)
+        synchronize(device)
         t_collect = time.perf_counter() - t0
         policy.train()
         t1 = time.perf_counter()
         ppo_update(policy, optimizer, rollout, ppo, torch.Generator().manual_seed(0))
-        _synchronize(device)
+        synchronize(device)
         t_update = time.perf_counter() - t1
         seconds = dict(env.stage_seconds)
         seconds["policy"] = max(t_collect - sum(seconds.values()), 0.0)  # sampling, buffers, bookkeeping
@@ -84,7 +86,7 @@ def run_train_bench(config: TrainBenchConfig) -> dict:
             "envs": n, "env_steps": steps, "env_steps_per_s": steps / total, "collect_env_steps_per_s": steps / t_collect,
             "share": {k: seconds[k] / total for k in STAGES}, "ms_per_step": {k: 1e3 * seconds[k] / config.rollout_steps for k in STAGES},
         })  # fmt: skip
-    return {"device": _device_name(device), "encoder": encoder_name, "threads": torch.get_num_threads(),
+    return {"device": device_name(device), "encoder": encoder_name, "threads": torch.get_num_threads(),
             "config": asdict(config), "rows": rows}  # fmt: skip
 
 
@@ -100,14 +102,3 @@ def format_train_bench(result: dict) -> str:
         shares = " | ".join(f"{100 * row['share'][s]:.1f}" for s in STAGES)
         lines.append(f"| {row['envs']} | {row['env_steps_per_s']:.1f} | {row['collect_env_steps_per_s']:.1f} | {shares} |")
     return "\n".join(lines)
-
-
-def _synchronize(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def _device_name(device: torch.device) -> str:
-    if device.type == "cuda":
-        return torch.cuda.get_device_name(device)
-    return "cpu"

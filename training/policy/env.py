@@ -28,6 +28,7 @@ from runtime.contract.constants import (
     CONTROL_PERIOD_S,
     EPISODE_DURATION_S,
     GOAL_REACHED_RADIUS_M,
+    IMAGE_SIZE_PX,
     LATENT_DIM,
     OBSERVATION_DIM,
 )
@@ -255,9 +256,8 @@ class NavEnv:
         self.prev_action = torch.zeros(n, 3, device=self.device)
         self.prev_dist_m = torch.zeros(n, device=self.device)
         self.episode_level = torch.zeros(n, dtype=torch.long, device=self.device)
-        self.episode_masks = torch.zeros(n, 224, 224, dtype=torch.bool)
+        self.episode_masks = torch.zeros(n, IMAGE_SIZE_PX, IMAGE_SIZE_PX, dtype=torch.bool)
         self.active = torch.ones(n, dtype=torch.bool, device=self.device)
-        self.last_depth_invalid_fraction = torch.zeros(n)
 
     # ---- episodes -------------------------------------------------------------------------
     @property
@@ -328,7 +328,7 @@ class NavEnv:
         t0 = self._timed("render", t0)
         depth_m = out.depth_m
         if cfg.corruption == "projector-off":
-            depth_m, lost = self.projector_off.apply(depth_m, out.gray_u8, self.camera.fx_px, self.generator)
+            depth_m, _ = self.projector_off.apply(depth_m, out.gray_u8, self.camera.fx_px, self.generator)
         gray = preprocess_gray_batch(out.gray_u8)
         depth = preprocess_depth_batch(depth_m)
         if cfg.corruption == "train":
@@ -339,7 +339,6 @@ class NavEnv:
                 depth[chosen.to(self.device)] = corrupt_depth(depth[chosen.to(self.device)], masks)
         elif cfg.corruption == "episode":
             depth = corrupt_depth(depth, self.episode_masks)
-        self.last_depth_invalid_fraction = (depth == 0.0).float().mean(dim=(1, 2)).cpu()
         self._timed("preprocess", t0)
         return gray.unsqueeze(1), depth.unsqueeze(1)
 

@@ -14,7 +14,7 @@ import torch.distributed as dist
 
 from ..checkpoint import checkpoint_fingerprint, load_train_state, save_train_state, save_weights
 from ..cmwae.train import load_cmwae
-from ..distributed import DistInfo, run_distributed, wall_budget_spent
+from ..distributed import DistInfo, all_reduce_mean, run_distributed, wall_budget_spent
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .env import CRASH, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig
@@ -68,8 +68,7 @@ def _reduce_grads(model: ActorCritic, info: DistInfo):
     def reduce() -> None:
         for p in model.parameters():
             if p.grad is not None:
-                dist.all_reduce(p.grad, op=dist.ReduceOp.SUM)
-                p.grad /= info.world_size
+                p.grad.copy_(all_reduce_mean(p.grad, info))
 
     return reduce
 
@@ -193,11 +192,11 @@ def collect_rollout(model, env, obs, hidden, starts, normalizer, ppo: PpoConfig)
         model.obs_norm.update(obs)
         hidden = torch.where(starts.unsqueeze(-1), torch.zeros_like(hidden), hidden)
         mean, value, hidden = model.step(obs, hidden)
-        dist = torch.distributions.Normal(mean, model.log_std.exp())
-        action = dist.sample()
+        action_dist = torch.distributions.Normal(mean, model.log_std.exp())
+        action = action_dist.sample()
         result = env.step(action)
         buf_obs[t], buf_starts[t], buf_actions[t] = obs, starts, action
-        buf_logp[t], buf_values[t] = dist.log_prob(action).sum(-1), value
+        buf_logp[t], buf_values[t] = action_dist.log_prob(action).sum(-1), value
         reward = result.reward * ppo.reward_scale
         buf_rewards[t] = normalizer(reward, result.done) if ppo.normalize_returns else reward
         buf_dones[t] = result.done

@@ -61,8 +61,9 @@ def _cmd_train_cmwae(args: argparse.Namespace) -> int:
     config = CmwaeTrainConfig(
         data_dir=args.data, out_dir=args.out, scheme=args.scheme, modalities=tuple(args.modalities.split(",")),
         size=args.size, steps=args.steps, epochs=args.epochs if args.steps is None else None,
-        batch_size=args.batch_size, lr=args.lr, mmd_weight=args.mmd_weight, seed=args.seed, device=args.device,
-        workers=args.workers, checkpoint_every=args.checkpoint_every, resume=args.resume,
+        batch_size=args.batch_size, lr=args.lr, lr_final=args.lr_final, mmd_weight=args.mmd_weight, seed=args.seed,
+        device=args.device, workers=args.workers, checkpoint_every=args.checkpoint_every, resume=args.resume,
+        max_wall_s=None if args.minutes is None else args.minutes * 60.0,
     )  # fmt: skip
     out = train_cmwae(config)
     print(f"checkpoint in {out}")
@@ -292,20 +293,23 @@ def build_parser() -> argparse.ArgumentParser:
     cmwae.add_argument("--data", required=True, help="dataset directory")
     cmwae.add_argument("--scheme", choices=["s1", "s2", "none"], default="s2", help="training corruption (none: the clean-depth baseline)")
     cmwae.add_argument("--out", required=True, help="checkpoint directory (model.json + fp16 shards + train state)")
-    cmwae.add_argument("--modalities", default="gray,depth", choices=["gray,depth", "depth"],
+    cmwae.add_argument("--modalities", default="gray,depth", choices=["gray,depth", "depth"], metavar="{gray,depth | depth}",
                        help="encoder inputs; 'depth' = the depth-only baseline (DCE-RL stand-in)")  # fmt: skip
     cmwae.add_argument("--size", default="paper", choices=["paper", "small", "tiny"], help="network width (paper = AlexNet)")
     length = cmwae.add_mutually_exclusive_group()
     length.add_argument("--steps", type=int, help="optimizer steps")
     length.add_argument("--epochs", type=int, default=10, help="epochs over the train split (default 10)")
     cmwae.add_argument("--batch-size", type=int, default=64)
-    cmwae.add_argument("--lr", type=float, default=1e-4)
+    cmwae.add_argument("--lr", type=float, default=1e-4, help="Adam learning rate (also applied on --resume)")
+    cmwae.add_argument("--lr-final", type=float,
+                       help="cosine-decay the learning rate from --lr at step 0 to this at the last step (default: constant)")  # fmt: skip
     cmwae.add_argument("--mmd-weight", type=float, default=10.0, help="lambda of the MMD term")
     cmwae.add_argument("--seed", type=int, default=0)
     cmwae.add_argument("--device", default="cpu", help="cpu or cuda")
     cmwae.add_argument("--workers", type=int, default=2, help="data-loading processes")
     cmwae.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints")
     cmwae.add_argument("--resume", action="store_true", help="continue from the train state in --out")
+    cmwae.add_argument("--minutes", type=float, help="stop (with a checkpoint) after this wall-clock time")
     cmwae.set_defaults(func=_cmd_train_cmwae)
 
     policy = train_sub.add_parser(

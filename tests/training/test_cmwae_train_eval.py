@@ -11,7 +11,7 @@ import torch
 
 from training.checkpoint import MAX_SHARD_BYTES, load_train_state, read_card
 from training.cmwae.model import Cmwae, make_config
-from training.cmwae.train import load_cmwae
+from training.cmwae.train import CmwaeTrainConfig, learning_rate, load_cmwae
 from training.data.generate import DatasetSpec, generate_dataset
 
 pytestmark = pytest.mark.timeout(300)
@@ -56,6 +56,27 @@ def test_train_checkpoint_resume_and_eval(dataset, tmp_path):
     assert "| 50% |" in result["table"]
     for plot in result["plots"].values():
         assert os.path.getsize(plot) > 1000
+
+
+def test_learning_rate_schedule_and_minutes_limit(dataset, tmp_path):
+    config = CmwaeTrainConfig(data_dir="d", out_dir="o", steps=11, lr=1e-3, lr_final=1e-4)
+    rates = [learning_rate(config, step, 11) for step in range(11)]
+    assert rates[0] == pytest.approx(1e-3) and rates[-1] == pytest.approx(1e-4) and rates[5] == pytest.approx(5.5e-4)
+    assert all(a > b for a, b in zip(rates, rates[1:]))
+    assert learning_rate(CmwaeTrainConfig(data_dir="d", out_dir="o", steps=11, lr=3e-4), 7, 11) == 3e-4
+    with pytest.raises(ValueError, match="lr_final"):
+        CmwaeTrainConfig(data_dir="d", out_dir="o", steps=11, lr=1e-4, lr_final=1e-3).validate()
+
+    out = tmp_path / "lr"
+    _cmnav(*TRAIN, "--data", str(dataset), "--out", str(out), "--steps", "3", "--lr", "1e-3")
+    assert load_train_state(out)["optimizer"]["param_groups"][0]["lr"] == pytest.approx(1e-3)
+    # --resume applies the new rate (the optimizer state alone would keep 1e-3) and decays it to --lr-final.
+    _cmnav(*TRAIN, "--data", str(dataset), "--out", str(out), "--steps", "5", "--lr", "5e-4", "--lr-final", "1e-4", "--resume")
+    assert load_train_state(out)["optimizer"]["param_groups"][0]["lr"] == pytest.approx(1e-4)
+
+    # --minutes stops early, with a checkpoint.
+    _cmnav(*TRAIN, "--data", str(dataset), "--out", str(tmp_path / "short"), "--steps", "500", "--minutes", "0.0001")
+    assert 1 <= read_card(tmp_path / "short", "cmwae")["step"] < 500
 
 
 def test_depth_only_baseline_uses_the_same_command(dataset, tmp_path):

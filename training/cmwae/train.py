@@ -5,6 +5,7 @@ resume, and multi-GPU through torchrun (DistributedDataParallel)."""
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -40,6 +41,7 @@ class CmwaeTrainConfig:
     epochs: int | None = None
     batch_size: int = 64
     lr: float = 1e-4
+    lr_final: float | None = None  # cosine decay from lr at step 0 to lr_final at the last step; None: constant
     mmd_weight: float = 10.0
     seed: int = 0
     device: str = "cpu"
@@ -60,6 +62,17 @@ class CmwaeTrainConfig:
                 raise ValueError(f"{key}={getattr(self, key)} must be >= 1")
         if (self.steps or 1) < 1 or (self.epochs or 1) < 1:
             raise ValueError("steps and epochs must be >= 1")
+        if self.lr <= 0 or (self.lr_final is not None and not 0 <= self.lr_final <= self.lr):
+            raise ValueError(f"lr={self.lr}, lr_final={self.lr_final}: need lr > 0 and 0 <= lr_final <= lr")
+
+
+def learning_rate(config: CmwaeTrainConfig, step: int, total_steps: int) -> float:
+    """The learning rate for optimizer step `step` (0-based) of `total_steps`: constant, or a cosine from
+    lr to lr_final. It depends on the step alone, so a resumed run follows the same schedule."""
+    if config.lr_final is None:
+        return config.lr
+    progress = min(step / max(total_steps - 1, 1), 1.0)
+    return config.lr_final + 0.5 * (config.lr - config.lr_final) * (1.0 + math.cos(math.pi * progress))
 
 
 def _corrupt(depth: torch.Tensor, scheme: str, generator: torch.Generator) -> torch.Tensor:
@@ -148,6 +161,9 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
             gray, depth, corrupted = gray.to(device), depth.to(device), corrupted.to(device)
             z, recon = ddp_model(gray, corrupted)
             losses = cmwae_loss(recon, depth, z, config.mmd_weight, loss_generator)
+            lr = learning_rate(config, step, total_steps)
+            for group in optimizer.param_groups:
+                group["lr"] = lr  # also overrides the rate a resumed optimizer state carries
             optimizer.zero_grad(set_to_none=True)
             losses["loss"].backward()
             optimizer.step()
@@ -157,7 +173,8 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
                 values = {k: float(all_reduce_mean(v.detach(), info)) for k, v in losses.items()}
                 now = time.monotonic()
                 if writer is not None:
-                    writer.add_scalars(step, {f"train/{k}": v for k, v in values.items()} | {"train/images_per_s": images / (now - t_last)})
+                    writer.add_scalars(step, {f"train/{k}": v for k, v in values.items()}
+                                       | {"train/images_per_s": images / (now - t_last), "train/lr": lr})  # fmt: skip
                 t_last, images = now, 0
                 if progress is not None:
                     progress.update(0, loss=values["loss"], mse=values["recon_mse"], mmd=values["mmd"])

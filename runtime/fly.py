@@ -50,6 +50,7 @@ from .log_rotation import new_log_path, rotate_logs
 from .model import ModelLoadError, PolicyModel, resolve_providers
 from .recorder import Recorder, RecorderError
 from .sdnotify import SystemdNotifier
+from .shutdown import close_step
 from .signals import cancel_on_stop_signals
 from .vehicle import MODE_OFFBOARD, Vehicle, VehicleError, VehicleState
 
@@ -141,8 +142,8 @@ class FieldProgram:
                 await loop.safe_stop()
             raise
         finally:
-            await loop.close()
-            await vehicle.close()
+            await close_step("the flight loop and camera", loop.close)
+            await close_step("MAVSDK", vehicle.close)
 
     # ------------------------------------------------------------------ start-up
 

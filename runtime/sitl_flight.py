@@ -43,6 +43,7 @@ from .faults import FaultKind, FaultSite, Injection, InjectionError, parse_injec
 from .flight import EpisodeResult, FlightLoop, log_task_failure
 from .model import ModelLoadError, PolicyModel
 from .recorder import Recorder, RecorderError
+from .shutdown import close_step, in_daemon_thread
 from .signals import cancel_on_stop_signals
 from .vehicle import MODE_OFFBOARD, Vehicle, VehicleError
 from .watchdog import TripCause
@@ -175,10 +176,10 @@ async def fly_episode(args: argparse.Namespace, summary: dict) -> EpisodeResult:
         raise
     finally:
         summary["camera"] = vars(camera.stats).copy()
-        await loop.close()
-        await vehicle.close()
-        recorder.close()
+        await close_step("the flight loop and camera", loop.close)
+        await close_step("the flight log", lambda: in_daemon_thread("recorder-close", recorder.close))
         summary["recorder"] = vars(recorder.stats).copy()
+        await close_step("MAVSDK", vehicle.close)
 
 
 async def _offboard_refused(loop: FlightLoop, vehicle: Vehicle, err: VehicleError, t_request_ns: int) -> EpisodeResult:

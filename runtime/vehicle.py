@@ -25,6 +25,7 @@ from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 from .config import VehicleConfig
 from .contract import HOVER, VelocityBodyYawspeed
 from .contract.frames import euler_from_quat, ned_to_enu, quat_conjugate, quat_ned_frd_to_enu_flu, quat_rotate
+from .shutdown import in_daemon_thread
 
 log = logging.getLogger(__name__)
 
@@ -150,18 +151,23 @@ class Vehicle:
         log.info("connected to the autopilot on %s", url)
 
     async def close(self) -> None:
-        """Stop the telemetry subscriptions and release MAVSDK (stops any setpoint re-sending)."""
+        """Stop the telemetry subscriptions and release MAVSDK (stops any setpoint re-sending).
+
+        MAVSDK's C teardown runs in a daemon thread: bounded by :func:`runtime.shutdown.close_step`,
+        a teardown that never returns cannot keep the process alive after landing."""
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
         self._tasks.clear()
-        for plugin in (self._offboard, self._action, self._telemetry):
-            if plugin is not None:
-                plugin.destroy()
-        self._offboard = self._action = self._telemetry = None
-        if self._mavsdk is not None:
-            self._mavsdk.destroy()
-            self._mavsdk = None
+        handles = [h for h in (self._offboard, self._action, self._telemetry, self._mavsdk) if h is not None]
+        self._offboard = self._action = self._telemetry = self._mavsdk = None
+
+        def destroy() -> None:  # plugins before the instance; each destroy() is idempotent and thread-safe
+            for handle in handles:
+                handle.destroy()
+
+        if handles:
+            await in_daemon_thread("mavsdk-destroy", destroy)
 
     # ------------------------------------------------------------------ telemetry
 

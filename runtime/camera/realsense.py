@@ -17,6 +17,7 @@ import numpy as np
 
 from ..contract import constants as c
 from ..contract.images import gray_from_bgr
+from ..shutdown import in_daemon_thread
 from .frame import Frame
 
 log = logging.getLogger(__name__)
@@ -180,4 +181,4 @@ class RealSenseSource:
     async def close(self) -> None:
         if self._pipeline is not None:
             pipeline, self._pipeline = self._pipeline, None
-            await asyncio.get_running_loop().run_in_executor(None, pipeline.stop)
+            await in_daemon_thread("realsense-stop", pipeline.stop)  # a wedged USB stop must not block exit

@@ -1,0 +1,99 @@
+"""Bounded teardown: a hung close is abandoned with its name and the thread stacks in the log, the
+next steps still run, and the process exits."""
+
+import asyncio
+import logging
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+
+import pytest
+
+from runtime.config import VehicleConfig
+from runtime.shutdown import close_step, in_daemon_thread
+from runtime.vehicle import Vehicle
+
+
+class _HungDestroy:
+    """A MAVSDK handle whose destroy() never returns (the hang seen once after landing)."""
+
+    def __init__(self) -> None:
+        self.called = threading.Event()
+        self._never = threading.Event()
+
+    def destroy(self) -> None:
+        self.called.set()
+        self._never.wait()
+
+
+def test_hung_and_failing_steps_are_abandoned_and_named(caplog):
+    caplog.set_level(logging.ERROR, logger="runtime.shutdown")
+    ran = []
+
+    async def hang() -> None:
+        await asyncio.Event().wait()
+
+    async def fail() -> None:
+        raise OSError("device gone")
+
+    async def ok() -> None:
+        ran.append("ok")
+
+    async def teardown() -> list[bool]:
+        return [await close_step("the camera", hang, 0.2), await close_step("the log", fail, 0.2), await close_step("MAVSDK", ok, 0.2)]
+
+    t0 = time.monotonic()
+    assert asyncio.run(teardown()) == [False, False, True]
+    assert time.monotonic() - t0 < 5.0
+    assert ran == ["ok"]
+    assert "closing the camera took over 0.2 s: abandoned" in caplog.text
+    assert "closing the log failed" in caplog.text and "device gone" in caplog.text
+
+
+def test_vehicle_close_does_not_wait_for_a_hung_mavsdk_destroy():
+    vehicle = Vehicle(VehicleConfig())
+    hung = _HungDestroy()
+    vehicle._mavsdk = hung  # as after connect(); no plugins, no subscriptions
+
+    async def teardown() -> bool:
+        return await close_step("MAVSDK", vehicle.close, 0.3)
+
+    assert asyncio.run(teardown()) is False
+    assert hung.called.is_set()
+
+
+def test_in_daemon_thread_returns_results_and_raises_errors():
+    def boom() -> None:
+        raise ValueError("bad handle")
+
+    async def run() -> None:
+        box = []
+        await in_daemon_thread("fill", lambda: box.append(1))
+        assert box == [1]
+        with pytest.raises(ValueError, match="bad handle"):
+            await in_daemon_thread("boom", boom)
+
+    asyncio.run(run())
+
+
+def test_process_exits_despite_a_teardown_that_never_returns():
+    """asyncio.run's default-executor shutdown and the interpreter's exit both wait for executor
+    threads; the daemon-thread teardown must leave neither waiting."""
+    script = textwrap.dedent(
+        """
+        import asyncio, threading
+        from runtime.shutdown import close_step, in_daemon_thread
+        never = threading.Event()
+        async def main():
+            done = await close_step("MAVSDK", lambda: in_daemon_thread("mavsdk-destroy", never.wait), 0.5)
+            print("closed", done, flush=True)
+        asyncio.run(main())
+        """
+    )
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert "closed False" in proc.stdout
+    assert "closing MAVSDK took over 0.5 s" in proc.stderr
+    assert 'Thread' in proc.stderr and "in wait" in proc.stderr  # faulthandler's stacks name the hung thread's frame

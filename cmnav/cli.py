@@ -7,6 +7,8 @@ import argparse
 import logging
 import sys
 
+log = logging.getLogger("cmnav")
+
 
 def _cmd_sitl(args: argparse.Namespace) -> int:
     from sim.sitl_session import run_sitl_cli
@@ -82,7 +84,7 @@ def _cmd_train_policy(args: argparse.Namespace) -> int:
         ppo=PpoConfig(rollout_steps=args.rollout, minibatches=args.minibatches, lr=args.lr),
         curriculum=CurriculumConfig(start_level=args.start_level, max_level=args.max_level,
                                     window_episodes=args.curriculum_window),
-        checkpoint_every=args.checkpoint_every, resume=args.resume,
+        checkpoint_every=args.checkpoint_every, resume=args.resume, init_from=args.init_from,
         max_wall_s=None if args.minutes is None else args.minutes * 60.0,
     )  # fmt: skip
     out = train_policy(config)
@@ -338,6 +340,9 @@ def build_parser() -> argparse.ArgumentParser:
     policy.add_argument("--curriculum-window", type=int, default=256, help="episodes per curriculum decision")
     policy.add_argument("--checkpoint-every", type=int, default=20, help="PPO iterations between checkpoints")
     policy.add_argument("--resume", action="store_true", help="continue from the train state in --out")
+    policy.add_argument("--init-from", metavar="POLICY_DIR",
+                        help="start from this policy checkpoint (fine-tuning); when it was trained on another encoder, "
+                        "its latent normalisation is re-estimated on --encoder")  # fmt: skip
     policy.set_defaults(func=_cmd_train_policy)
 
     evaluate = sub.add_parser("eval", help="evaluate a trained encoder (Table I) or policy (Table II)")
@@ -495,4 +500,9 @@ def main(argv: list[str] | None = None) -> int:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
-    return int(args.func(args) or 0)
+    try:
+        return int(args.func(args) or 0)
+    except ValueError as err:  # bad input (config, checkpoint, data): the message names it and the fix
+        log.debug("traceback", exc_info=True)
+        print(f"cmnav {' '.join(filter(None, (args.command, getattr(args, 'what', None))))}: {err}", file=sys.stderr)
+        return 2

@@ -52,7 +52,7 @@ from runtime.contract import constants as c
 from runtime.contract import contract_metadata
 from training.checkpoint import CheckpointError, checkpoint_fingerprint
 from training.cmwae.train import load_cmwae
-from training.policy.network import ActorCritic, load_policy
+from training.policy.network import ActorCritic, check_trained_on, load_policy
 
 from .variants import VARIANTS, variant_path
 
@@ -82,10 +82,6 @@ _REPO_ROOT = Path(__file__).resolve().parent.parent
 
 class ExportError(ValueError):
     """The checkpoints cannot be exported, or the exported graph failed a check; the message says why."""
-
-
-class EncoderMismatchError(ExportError):
-    """The policy was trained on another encoder than the one given."""
 
 
 class ParityError(ExportError):
@@ -125,27 +121,17 @@ class Networks:
 
 
 def load_networks(encoder_dir: str | Path, policy_dir: str | Path) -> Networks:
-    """Load the CMWAE encoder and the policy; raise :class:`EncoderMismatchError` when the policy's
-    card names another encoder (``meta.encoder_fingerprint``), :class:`ExportError` when a
-    checkpoint is missing or of the wrong kind."""
+    """Load the CMWAE encoder and the policy; raise :class:`~training.policy.network.EncoderMismatchError`
+    when the policy's card names another encoder (``meta.encoder_fingerprint``), :class:`ExportError`
+    when a checkpoint is missing or of the wrong kind."""
     encoder_dir, policy_dir = Path(encoder_dir), Path(policy_dir)
     try:
-        encoder_fp = checkpoint_fingerprint(encoder_dir)
         policy_fp = checkpoint_fingerprint(policy_dir)
         policy, policy_card = load_policy(policy_dir)
-        trained_on = policy_card.get("meta", {}).get("encoder_fingerprint")
-        if trained_on is not None and trained_on != encoder_fp:
-            raise EncoderMismatchError(
-                f"the policy {policy_dir} was trained on the encoder with fingerprint {trained_on}, but the encoder "
-                f"given ({encoder_dir}) has fingerprint {encoder_fp}: pass --encoder the checkpoint the policy was "
-                "trained with (its fingerprint is in the policy's model.json, meta.encoder_fingerprint), or train "
-                "the policy on this encoder"
-            )
+        encoder_fp = check_trained_on(policy_card, policy_dir, encoder_dir)
         cmwae, encoder_card = load_cmwae(encoder_dir)
     except CheckpointError as err:
         raise ExportError(str(err)) from err
-    if trained_on is None:
-        log.warning("%s does not name the encoder it was trained on (meta.encoder_fingerprint); cannot check it", policy_dir)
     step = RuntimeStep(cmwae.encoder, policy).float().eval()
     return Networks(step, encoder_dir, policy_dir, encoder_card, policy_card, encoder_fp, policy_fp)
 
@@ -507,7 +493,7 @@ def export_policy(
 ) -> ExportReport:
     """Export, check parity, write the variants, and load the result with the runtime's loader.
 
-    Raises :class:`EncoderMismatchError`, :class:`ExportError` (bad checkpoint), :class:`ParityError`
+    Raises :class:`~training.policy.network.EncoderMismatchError`, :class:`ExportError` (bad checkpoint), :class:`ParityError`
     (the file is renamed ``*.parity-failed``, named in the message, for inspection) or the runtime
     loader's error.
     """

@@ -26,7 +26,6 @@ from export.policy_onnx import (
     KEY_PROVENANCE,
     KEY_VARIANT,
     PARITY_TOLERANCE,
-    EncoderMismatchError,
     ParityError,
     export_policy,
     load_networks,
@@ -40,7 +39,7 @@ from runtime.contract.metadata import METADATA_KEY_VALUES
 from runtime.model import PolicyModel
 from training.checkpoint import checkpoint_fingerprint, save_weights
 from training.cmwae.model import Cmwae, make_config
-from training.policy.network import CHECKPOINT_KIND, ActorCritic, PolicyConfig
+from training.policy.network import CHECKPOINT_KIND, ActorCritic, EncoderMismatchError, PolicyConfig
 
 ROOT = Path(__file__).resolve().parents[2]
 GRU_SIZE = 8

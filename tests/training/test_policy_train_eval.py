@@ -9,10 +9,12 @@ from dataclasses import asdict
 import pytest
 import torch
 
-from training.checkpoint import load_train_state, read_card, save_weights
+from runtime.contract.constants import OBS_LATENT
+from training.checkpoint import checkpoint_fingerprint, load_train_state, read_card, save_weights
 from training.cmwae.model import Cmwae, make_config
 from training.policy.network import POLICY_SIZES, ActorCritic, RunningNorm, load_policy
 from training.policy.ppo import Rollout, gae
+from training.policy.train import init_from_policy
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -122,5 +124,56 @@ def test_eval_refuses_an_encoder_the_policy_was_not_trained_with(encoders, tmp_p
     _cmnav(*TRAIN, "--encoder", str(encoders / "enc"), "--out", str(out), "--steps", "128")
     proc = subprocess.run([sys.executable, "-m", "cmnav", "eval", "policy", "--policy", str(out), "--encoder",
                            str(encoders / "other"), "--episodes", "1"], capture_output=True, text=True, timeout=120)  # fmt: skip
-    assert proc.returncode != 0
-    assert "was trained on encoder" in proc.stderr and "pass the encoder it was trained with" in proc.stderr
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert "was trained on encoder" in proc.stderr and "pass --encoder the checkpoint the policy was trained with" in proc.stderr
+    assert f"--init-from {out}" in proc.stderr
+
+
+def test_init_from_fine_tunes_a_policy_on_another_encoder(encoders, tmp_path):
+    source = tmp_path / "policy"
+    _cmnav(*TRAIN, "--encoder", str(encoders / "enc"), "--out", str(source), "--steps", "128")
+    tuned = tmp_path / "tuned"
+    _cmnav(*TRAIN, "--encoder", str(encoders / "other"), "--init-from", str(source), "--out", str(tuned), "--steps", "128")
+    meta = read_card(tuned, "policy")["meta"]
+    assert meta["encoder_fingerprint"] == checkpoint_fingerprint(encoders / "other")
+    assert meta["init_from"] == {"dir": str(source), "fingerprint": checkpoint_fingerprint(source), "env_steps": 128,
+                                 "encoder_fingerprint": checkpoint_fingerprint(encoders / "enc"),
+                                 "latent_stats_reestimated": True}  # fmt: skip
+    start, trained = load_policy(source)[0], load_policy(tuned)[0]
+    assert int(trained.obs_norm.count) > int(start.obs_norm.count)  # continued from the source's statistics
+    # The network's size must match the source's.
+    proc = subprocess.run([sys.executable, "-m", "cmnav", *TRAIN[:2], "--size", "paper", "--envs", "8", "--rollout", "16",
+                           "--encoder", str(encoders / "other"), "--init-from", str(source), "--out", str(tmp_path / "x"),
+                           "--steps", "128"], capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert proc.returncode == 2 and "pass the --size it was trained with" in proc.stderr
+
+
+def test_init_from_restandardises_the_latent_on_the_new_encoder(encoders, tmp_path):
+    source = tmp_path / "policy"
+    _cmnav(*TRAIN, "--encoder", str(encoders / "enc"), "--out", str(source), "--steps", "128")
+    start = load_policy(source)[0]
+
+    class Resets:  # the env's first observations, as init_from_policy reads them
+        def __init__(self):
+            self.generator = torch.Generator().manual_seed(0)
+            self.batches = []
+
+        def reset(self):
+            self.batches.append(torch.randn(8, 79, generator=self.generator) * 3 + 2)
+            return self.batches[-1]
+
+    model, env = ActorCritic(POLICY_SIZES["tiny"]), Resets()
+    init_from_policy(model, str(source), checkpoint_fingerprint(encoders / "other"), env)
+    latents = torch.cat(env.batches)[:, OBS_LATENT]
+    torch.testing.assert_close(model.obs_norm.mean[OBS_LATENT], latents.mean(0))
+    torch.testing.assert_close(model.obs_norm.var[OBS_LATENT], latents.var(0, unbiased=False))
+    state = slice(0, OBS_LATENT.start)
+    torch.testing.assert_close(model.obs_norm.mean[state], start.obs_norm.mean[state])
+    for name, tensor in start.state_dict().items():
+        if not name.startswith("obs_norm"):
+            torch.testing.assert_close(model.state_dict()[name], tensor, msg=name)
+
+    # Same encoder: the statistics are kept as trained.
+    same = ActorCritic(POLICY_SIZES["tiny"])
+    init_from_policy(same, str(source), checkpoint_fingerprint(encoders / "enc"), Resets())
+    torch.testing.assert_close(same.obs_norm.mean, start.obs_norm.mean)

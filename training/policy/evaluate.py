@@ -17,11 +17,10 @@ import torch
 
 from sim.plot import plot_top_view
 
-from ..checkpoint import checkpoint_fingerprint
 from ..cmwae.train import load_cmwae
 from ..progress import Progress
 from .env import CRASH, OUTCOMES, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig
-from .network import load_policy
+from .network import check_trained_on, load_policy
 
 CONDITIONS = {"clean": "none", "corrupted": "episode", "projector-off": "projector-off"}
 
@@ -84,12 +83,7 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
     device = torch.device(config.device)
     policy, card = load_policy(config.policy_dir, device)
     cmwae, _ = load_cmwae(config.encoder_dir, device)
-    fingerprint = card.get("meta", {}).get("encoder_fingerprint")
-    if fingerprint is not None and fingerprint != checkpoint_fingerprint(config.encoder_dir):
-        raise ValueError(
-            f"{config.policy_dir} was trained on encoder {fingerprint} ({card['meta'].get('encoder')}), but "
-            f"{config.encoder_dir} is {checkpoint_fingerprint(config.encoder_dir)}: pass the encoder it was trained with"
-        )
+    fingerprint = check_trained_on(card, config.policy_dir, config.encoder_dir)
     out = Path(config.out_dir or Path(config.policy_dir) / "eval")
     out.mkdir(parents=True, exist_ok=True)
     cells = []

@@ -9,12 +9,16 @@ state-independent log standard deviation is a parameter; the runtime flies the m
 
 from __future__ import annotations
 
+import logging
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import torch
 from torch import Tensor, nn
 
 from runtime.contract.constants import ACTION_DIM, OBSERVATION_DIM
+
+log = logging.getLogger(__name__)
 
 CHECKPOINT_KIND = "policy"
 
@@ -130,6 +134,31 @@ class ActorCritic(nn.Module):
             outputs.append(h)
         hs = torch.stack(outputs)
         return self.action_head(hs), self.value_head(hs).squeeze(-1)
+
+
+class EncoderMismatchError(ValueError):
+    """The policy was trained on another encoder than the one given."""
+
+
+def check_trained_on(policy_card: dict, policy_dir: str | Path, encoder_dir: str | Path) -> str:
+    """The fingerprint of ``encoder_dir``, after checking that the policy (its card) was trained on that
+    encoder; :class:`EncoderMismatchError` names both fingerprints and the fix.  A card that names no
+    encoder is let through with a warning."""
+    from training.checkpoint import checkpoint_fingerprint
+
+    fingerprint = checkpoint_fingerprint(encoder_dir)
+    meta = policy_card.get("meta", {})
+    trained_on = meta.get("encoder_fingerprint")
+    if trained_on is None:
+        log.warning("%s does not name the encoder it was trained on (meta.encoder_fingerprint); cannot check it", policy_dir)
+    elif trained_on != fingerprint:
+        raise EncoderMismatchError(
+            f"the policy {policy_dir} was trained on encoder {trained_on} ({meta.get('encoder')}), but {encoder_dir} is "
+            f"{fingerprint}: pass --encoder the checkpoint the policy was trained with (meta.encoder_fingerprint in the "
+            f"policy's model.json), or fine-tune the policy on this encoder: cmnav train policy --encoder {encoder_dir} "
+            f"--init-from {policy_dir} --out NEW_DIR"
+        )
+    return fingerprint
 
 
 def load_policy(ckpt_dir, device: torch.device | str = "cpu") -> tuple[ActorCritic, dict]:

@@ -12,13 +12,15 @@ from pathlib import Path
 import torch
 import torch.distributed as dist
 
+from runtime.contract.constants import OBS_LATENT
+
 from ..checkpoint import checkpoint_fingerprint, load_train_state, save_train_state, save_weights
 from ..cmwae.train import load_cmwae
 from ..distributed import DistInfo, all_reduce_mean, run_distributed, wall_budget_spent
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .env import CRASH, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig
-from .network import CHECKPOINT_KIND, ActorCritic, PolicyConfig
+from .network import CHECKPOINT_KIND, ActorCritic, PolicyConfig, load_policy
 from .ppo import PpoConfig, ReturnNormalizer, Rollout, ppo_update
 
 log = logging.getLogger(__name__)
@@ -38,6 +40,7 @@ class PolicyTrainConfig:
     curriculum: CurriculumConfig = CurriculumConfig()
     checkpoint_every: int = 20  # PPO iterations
     resume: bool = False
+    init_from: str | None = None  # start from this policy checkpoint (fine-tuning, e.g. after retraining the encoder)
     max_wall_s: float | None = None  # stop (with a checkpoint) after this long
     env_overrides: dict = field(default_factory=dict)  # other NavEnvConfig fields
 
@@ -101,6 +104,11 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
         log.info("resumed %s at iteration %d (%d env steps, level %d)", out, iteration, env_steps, env.curriculum.level)
     elif config.resume:
         log.warning("--resume: no training state in %s, starting from scratch", out)
+    init_meta = None
+    if config.init_from is not None and state is None:
+        init_meta = init_from_policy(model, config.init_from, encoder_fingerprint, env)
+    elif config.init_from is not None:
+        log.info("--init-from %s ignored: resuming %s, which already started from it", config.init_from, out)
     if info.enabled:  # every process starts from rank 0's weights
         for tensor in list(model.parameters()) + list(model.buffers()):
             dist.broadcast(tensor.data, src=0)
@@ -119,6 +127,8 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
         "world_size": info.world_size,
         "seed": config.seed,
     }
+    if init_meta is not None or state is not None:
+        meta["init_from"] = init_meta if state is None else state.get("init_from")
 
     def checkpoint() -> None:
         if not info.is_main:
@@ -130,6 +140,7 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
             "env_steps": env_steps, "return_normalizer": normalizer.state_dict(),
             "curriculum": env.curriculum.state_dict(), "env_rng": env.generator.get_state(),
             "update_rng": update_generator.get_state(), "encoder_fingerprint": encoder_fingerprint,
+            "init_from": meta.get("init_from"),
         })  # fmt: skip
 
     obs = env.reset()
@@ -170,6 +181,34 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
     if writer is not None:
         writer.close()
     return out
+
+
+LATENT_STATS_RESETS = 8  # env resets whose first observations re-estimate the latent statistics
+
+
+@torch.no_grad()
+def init_from_policy(model: ActorCritic, init_dir: str, encoder_fingerprint: str, env: NavEnv) -> dict:
+    """Load another run's policy (weights, log-std, observation normaliser) into ``model`` to fine-tune it.
+
+    When that policy was trained on another encoder, its normaliser's latent statistics describe the
+    old encoder's latents; they are re-estimated on this encoder's latents (the first observations
+    of ``LATENT_STATS_RESETS`` env resets) so that the network again sees standardised latents.
+    Returns what the card records: the source, its fingerprint, steps and encoder."""
+    source, card = load_policy(init_dir, next(model.parameters()).device)
+    if PolicyConfig.from_json(card["config"]) != model.config:
+        raise ValueError(f"--init-from {init_dir}: its network {card['config']} differs from this run's "
+                         f"{model.config.to_json()}; pass the --size it was trained with")  # fmt: skip
+    model.load_state_dict(source.state_dict())
+    source_encoder = card.get("meta", {}).get("encoder_fingerprint")
+    restandardised = source_encoder != encoder_fingerprint
+    if restandardised:
+        latents = torch.cat([env.reset()[:, OBS_LATENT] for _ in range(LATENT_STATS_RESETS)])
+        model.obs_norm.mean[OBS_LATENT] = latents.mean(dim=0)
+        model.obs_norm.var[OBS_LATENT] = latents.var(dim=0, unbiased=False)
+    log.info("starting from %s (%s env steps, encoder %s)%s", init_dir, card.get("step"), source_encoder,
+             "; latent statistics re-estimated on this encoder" if restandardised else "")  # fmt: skip
+    return {"dir": str(init_dir), "fingerprint": checkpoint_fingerprint(init_dir), "env_steps": card.get("step"),
+            "encoder_fingerprint": source_encoder, "latent_stats_reestimated": restandardised}  # fmt: skip
 
 
 @torch.no_grad()

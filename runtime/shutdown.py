@@ -48,12 +48,21 @@ async def in_daemon_thread(name: str, blocking: Callable[[], None]) -> None:
     done = loop.create_future()
 
     def run() -> None:
+        error: BaseException | None = None
         try:
             blocking()
         except BaseException as err:  # noqa: BLE001 - handed to the awaiting task
-            loop.call_soon_threadsafe(lambda: done.done() or done.set_exception(err))
-        else:
-            loop.call_soon_threadsafe(lambda: done.done() or done.set_result(None))
+            error = err
+        loop.call_soon_threadsafe(_settle, done, error)
 
     threading.Thread(target=run, name=name, daemon=True).start()
     await done
+
+
+def _settle(future: asyncio.Future, error: BaseException | None) -> None:
+    if future.done():  # the waiter was cancelled (close_step's timeout)
+        return
+    if error is None:
+        future.set_result(None)
+    else:
+        future.set_exception(error)

@@ -99,10 +99,13 @@ def _cmd_eval_cmwae(args: argparse.Namespace) -> int:
 
     result = evaluate_cmwae(
         CmwaeEvalConfig(checkpoint=args.checkpoint, data_dir=args.data, split=args.split, out_dir=args.out,
-                        device=args.device, max_images=args.max_images, seed=args.seed)  # fmt: skip
+                        device=args.device, max_images=args.max_images, seed=args.seed,
+                        **({} if args.patch_sides is None else {"patch_sides_px": args.patch_sides}))  # fmt: skip
     )
     print(result["table"])
-    print(f"MSE at 50% / 0%: {result['mse_ratio_50_over_0']}; table1.json and plots in {result['out_dir']}")
+    low, high = result["patch_sides_px"]
+    print(f"patches of side {low}-{high} px; MSE at 50% / 0%: {result['mse_ratio_50_over_0']}; "
+          f"table1.json and plots in {result['out_dir']}")  # fmt: skip
     if args.json:
         print(json.dumps(result))
     return 0
@@ -347,6 +350,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     evaluate = sub.add_parser("eval", help="evaluate a trained encoder (Table I) or policy (Table II)")
     eval_sub = evaluate.add_subparsers(dest="what", required=True, metavar="WHAT")
+    def side_range(text: str) -> tuple[int, int]:
+        low, _, high = text.partition("-")
+        try:
+            return int(low), int(high or low)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r}: expected MIN-MAX in px, e.g. 1-50 or 100-100") from None
+
     eval_cmwae = eval_sub.add_parser("cmwae", help="Table I: MSE/SSIM at 0-50%% evaluation corruption on the held-out split")
     eval_cmwae.add_argument("--checkpoint", required=True, help="checkpoint directory")
     eval_cmwae.add_argument("--data", required=True, help="dataset directory")
@@ -355,6 +365,9 @@ def build_parser() -> argparse.ArgumentParser:
     eval_cmwae.add_argument("--device", default="cpu")
     eval_cmwae.add_argument("--max-images", type=int, help="evaluate at most this many images")
     eval_cmwae.add_argument("--seed", type=int, default=0, help="seed of the evaluation patches")
+    eval_cmwae.add_argument("--patch-sides", type=side_range, metavar="MIN-MAX",
+                            help="side range of the square patches in px at 224x224 (default 1-50, Table I's; "
+                            "100-100: S2's training squares; 1-30: the policy's training patches)")  # fmt: skip
     eval_cmwae.add_argument("--json", action="store_true", help="print the result as JSON on the last line")
     eval_cmwae.set_defaults(func=_cmd_eval_cmwae)
 

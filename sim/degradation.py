@@ -76,9 +76,14 @@ EVALUATION_COVERAGES = (0.0, 0.2, 0.3, 0.4, 0.5)
 SCHEMES = {"s1": S1, "s2": S2, "rl": RL_TRAINING}
 
 
-def evaluation_scheme(coverage: float) -> PatchScheme:
-    """Table I's evaluation corruption: sides U{1..50} px to exactly this coverage."""
-    return PatchScheme(1, 50, min_coverage=coverage, max_coverage=coverage)
+EVALUATION_PATCH_SIDES_PX = (1, 50)
+
+
+def evaluation_scheme(coverage: float, sides_px: tuple[int, int] = EVALUATION_PATCH_SIDES_PX) -> PatchScheme:
+    """Table I's evaluation corruption: sides U{1..50} px (or ``sides_px``) to exactly this coverage."""
+    scheme = PatchScheme(sides_px[0], sides_px[1], min_coverage=coverage, max_coverage=coverage)
+    scheme.validate()
+    return scheme
 
 
 def _paint_squares(size_px: int, top: Tensor, left: Tensor, side: Tensor, use: Tensor) -> Tensor:

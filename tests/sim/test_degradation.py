@@ -30,6 +30,26 @@ def test_evaluation_coverage_is_reached_overshooting_by_at_most_one_patch(covera
     assert torch.all(frac <= coverage + 2 * 50 * 50 / 224**2)
 
 
+def _shortest_row_run(masks):
+    """Shortest run of masked pixels along any row (a union of squares of side >= s has no run < s)."""
+    shortest = 10**9
+    for row in masks.reshape(-1, masks.shape[-1]).int():
+        edges = torch.diff(torch.cat([torch.zeros(1, dtype=torch.int32), row, torch.zeros(1, dtype=torch.int32)]))
+        starts, ends = torch.nonzero(edges == 1).flatten(), torch.nonzero(edges == -1).flatten()
+        if len(starts):
+            shortest = min(shortest, int((ends - starts).min()))
+    return shortest
+
+
+def test_evaluation_patch_sides_can_be_chosen():
+    masks = patch_masks(torch.full((8,), 0.5), evaluation_scheme(0.5, (100, 100)), _gen())
+    assert torch.all(masks.float().mean(dim=(1, 2)) >= 0.5)
+    assert _shortest_row_run(masks) >= 100
+    assert _shortest_row_run(patch_masks(torch.full((8,), 0.5), evaluation_scheme(0.5), _gen())) < 100
+    with pytest.raises(ValueError, match="patch sides 0..5 px"):
+        evaluation_scheme(0.5, (0, 5))
+
+
 def test_zero_coverage_leaves_images_pristine():
     assert not patch_masks(torch.zeros(4), evaluation_scheme(0.0), _gen()).any()
 

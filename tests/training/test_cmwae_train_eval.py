@@ -56,6 +56,18 @@ def test_train_checkpoint_resume_and_eval(dataset, tmp_path):
     assert "| 50% |" in result["table"]
     for plot in result["plots"].values():
         assert os.path.getsize(plot) > 1000
+    assert result["patch_sides_px"] == [1, 50]
+
+    # S2's own 100 px squares instead of Table I's 1-50 px patches: other masks, same coverages.
+    stdout = _cmnav("eval", "cmwae", "--checkpoint", str(out), "--data", str(dataset), "--max-images", "3",
+                    "--patch-sides", "100-100", "--out", str(tmp_path / "eval100"), "--json")  # fmt: skip
+    squares = json.loads(stdout.strip().splitlines()[-1])
+    assert squares["patch_sides_px"] == [100, 100] and "patches of side 100-100 px" in stdout
+    assert squares["rows"][0]["mse_e3"] == result["rows"][0]["mse_e3"]  # 0 %: no patches either way
+    assert squares["rows"][4]["actual_coverage_pct"] >= 50.0
+    bad = subprocess.run([sys.executable, "-m", "cmnav", "eval", "cmwae", "--checkpoint", str(out), "--data", str(dataset),
+                          "--patch-sides", "0-5"], capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert bad.returncode == 2 and "patch sides 0..5 px must lie in 1..224" in bad.stderr
 
 
 def test_learning_rate_schedule_and_minutes_limit(dataset, tmp_path):

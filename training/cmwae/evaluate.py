@@ -1,5 +1,6 @@
 """`cmnav eval cmwae`: Table I — mean depth-reconstruction MSE and SSIM on the held-out split at
-0/20/30/40/50 % evaluation corruption (square patches of side 1..50 px), as a markdown table like
+0/20/30/40/50 % evaluation corruption (square patches of side 1..50 px, or other sides to see how the
+encoder copes with S2's 100 px squares or the policy's 1..30 px patches), as a markdown table like
 the paper's, plus MSE/SSIM box plots and a grid of example inputs and reconstructions.
 
 The table needs only torch: SSIM comes from pytorch-msssim, or from its wheel in vendor/ where it
@@ -16,7 +17,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from sim.degradation import EVALUATION_COVERAGES, corrupt_depth, evaluation_scheme, patch_masks
+from sim.degradation import EVALUATION_COVERAGES, EVALUATION_PATCH_SIDES_PX, corrupt_depth, evaluation_scheme, patch_masks
 from sim.plot import opencv_for_drawing
 
 from ..data.tartanair import GrayDepthDataset
@@ -38,10 +39,12 @@ class CmwaeEvalConfig:
     max_images: int | None = None
     seed: int = 0
     coverages: tuple[float, ...] = EVALUATION_COVERAGES
+    patch_sides_px: tuple[int, int] = EVALUATION_PATCH_SIDES_PX  # Table I's; e.g. (100, 100): S2's own squares
 
 
 @torch.no_grad()
 def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
+    schemes = {c: evaluation_scheme(c, config.patch_sides_px) for c in config.coverages}  # bad sides fail here, first
     model, card = load_cmwae(config.checkpoint, config.device)
     dataset = GrayDepthDataset(config.data_dir, config.split)
     loader = DataLoader(dataset, batch_size=config.batch_size, num_workers=0)
@@ -56,7 +59,7 @@ def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
                 if seen >= config.max_images:
                     break
                 gray, depth = gray[: config.max_images - seen], depth[: config.max_images - seen]
-            masks = patch_masks(torch.full((depth.shape[0],), coverage), evaluation_scheme(coverage), generator)
+            masks = patch_masks(torch.full((depth.shape[0],), coverage), schemes[coverage], generator)
             corrupted = corrupt_depth(depth, masks)
             _, recon = model(gray.to(config.device), corrupted.to(config.device))
             recon = recon.float().cpu()
@@ -91,6 +94,7 @@ def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
         "modalities": card["config"]["modalities"],
         "step": card["step"],
         "split": config.split,
+        "patch_sides_px": list(config.patch_sides_px),
         "rows": rows,
         "table": markdown_table(rows),
         "mse_ratio_50_over_0": _ratio(rows),

@@ -350,6 +350,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     evaluate = sub.add_parser("eval", help="evaluate a trained encoder (Table I) or policy (Table II)")
     eval_sub = evaluate.add_subparsers(dest="what", required=True, metavar="WHAT")
+
     def side_range(text: str) -> tuple[int, int]:
         low, _, high = text.partition("-")
         try:

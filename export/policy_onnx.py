@@ -493,9 +493,9 @@ def export_policy(
 ) -> ExportReport:
     """Export, check parity, write the variants, and load the result with the runtime's loader.
 
-    Raises :class:`~training.policy.network.EncoderMismatchError`, :class:`ExportError` (bad checkpoint), :class:`ParityError`
-    (the file is renamed ``*.parity-failed``, named in the message, for inspection) or the runtime
-    loader's error.
+    Raises :class:`~training.policy.network.EncoderMismatchError`, :class:`ExportError` (bad
+    checkpoint), :class:`ParityError` (the file is renamed ``*.parity-failed``, named in the
+    message, for inspection) or the runtime loader's error.
     """
     from runtime.model import PolicyModel
 

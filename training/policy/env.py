@@ -10,8 +10,9 @@ dynamics follow for one control period, with collisions checked every physics su
 
 Episodes end in a crash (any contact) or after 10 s: success if the vehicle is then within 1 m of
 the goal, else timeout (Aerial Gym's rule, which its reward assumes: a policy is paid for
-staying at the goal, so reaching it must not end the episode).  An ended env is reset at once to a new room at the curriculum's current level (training), or
-stays ended (evaluation, ``auto_reset=False``).
+staying at the goal, so reaching it must not end the episode).  An ended env is reset at once to
+a new room at the curriculum's current level (training), or stays ended (evaluation,
+``auto_reset=False``).
 """
 
 from __future__ import annotations

@@ -82,8 +82,8 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
     config.validate()
     device = torch.device(config.device)
     policy, card = load_policy(config.policy_dir, device)
-    cmwae, _ = load_cmwae(config.encoder_dir, device)
     fingerprint = check_trained_on(card, config.policy_dir, config.encoder_dir)
+    cmwae, _ = load_cmwae(config.encoder_dir, device)
     out = Path(config.out_dir or Path(config.policy_dir) / "eval")
     out.mkdir(parents=True, exist_ok=True)
     cells = []

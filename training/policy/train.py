@@ -101,14 +101,14 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
         env.generator.set_state(state["env_rng"])
         update_generator.set_state(state["update_rng"])
         iteration, env_steps = state["iteration"], state["env_steps"]
+        init_meta = state.get("init_from")  # where this run's weights started, if not from scratch
         log.info("resumed %s at iteration %d (%d env steps, level %d)", out, iteration, env_steps, env.curriculum.level)
-    elif config.resume:
-        log.warning("--resume: no training state in %s, starting from scratch", out)
-    init_meta = None
-    if config.init_from is not None and state is None:
-        init_meta = init_from_policy(model, config.init_from, encoder_fingerprint, env)
-    elif config.init_from is not None:
-        log.info("--init-from %s ignored: resuming %s, which already started from it", config.init_from, out)
+        if config.init_from is not None:
+            log.info("--init-from %s ignored: resuming %s, which already started from it", config.init_from, out)
+    else:
+        if config.resume:
+            log.warning("--resume: no training state in %s, starting from scratch", out)
+        init_meta = None if config.init_from is None else init_from_policy(model, config.init_from, encoder_fingerprint, env)
     if info.enabled:  # every process starts from rank 0's weights
         for tensor in list(model.parameters()) + list(model.buffers()):
             dist.broadcast(tensor.data, src=0)
@@ -127,8 +127,8 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
         "world_size": info.world_size,
         "seed": config.seed,
     }
-    if init_meta is not None or state is not None:
-        meta["init_from"] = init_meta if state is None else state.get("init_from")
+    if init_meta is not None:
+        meta["init_from"] = init_meta
 
     def checkpoint() -> None:
         if not info.is_main:

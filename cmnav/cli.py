@@ -57,6 +57,12 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
     return 0
 
 
+def _given(args: argparse.Namespace, *names: str) -> dict:
+    """The options among ``names`` given on the command line (they default to None, so that the
+    config dataclass keeps the one default)."""
+    return {name: getattr(args, name) for name in names if getattr(args, name) is not None}
+
+
 def _cmd_train_cmwae(args: argparse.Namespace) -> int:
     from training.cmwae.train import CmwaeTrainConfig, train_cmwae
 
@@ -65,7 +71,8 @@ def _cmd_train_cmwae(args: argparse.Namespace) -> int:
         size=args.size, steps=args.steps, epochs=args.epochs if args.steps is None else None,
         batch_size=args.batch_size, lr=args.lr, lr_final=args.lr_final, mmd_weight=args.mmd_weight, seed=args.seed,
         device=args.device, workers=args.workers, checkpoint_every=args.checkpoint_every, resume=args.resume,
-        max_wall_s=None if args.minutes is None else args.minutes * 60.0,
+        max_wall_s=None if args.minutes is None else args.minutes * 60.0, init_from=args.init_from,
+        **_given(args, "precision", "corrupted_loss_weight"),
     )  # fmt: skip
     out = train_cmwae(config)
     print(f"checkpoint in {out}")
@@ -85,7 +92,7 @@ def _cmd_train_policy(args: argparse.Namespace) -> int:
         curriculum=CurriculumConfig(start_level=args.start_level, max_level=args.max_level,
                                     window_episodes=args.curriculum_window),
         checkpoint_every=args.checkpoint_every, resume=args.resume, init_from=args.init_from,
-        max_wall_s=None if args.minutes is None else args.minutes * 60.0,
+        max_wall_s=None if args.minutes is None else args.minutes * 60.0, **_given(args, "precision"),
     )  # fmt: skip
     out = train_policy(config)
     print(f"checkpoint in {out}")
@@ -100,6 +107,7 @@ def _cmd_eval_cmwae(args: argparse.Namespace) -> int:
     result = evaluate_cmwae(
         CmwaeEvalConfig(checkpoint=args.checkpoint, data_dir=args.data, split=args.split, out_dir=args.out,
                         device=args.device, max_images=args.max_images, seed=args.seed,
+                        **_given(args, "precision"),
                         **({} if args.patch_sides is None else {"patch_sides_px": args.patch_sides}))  # fmt: skip
     )
     print(result["table"])
@@ -119,6 +127,7 @@ def _cmd_eval_policy(args: argparse.Namespace) -> int:
     config = PolicyEvalConfig(
         policy_dir=args.policy, encoder_dir=args.encoder, levels=tuple(args.levels), conditions=tuple(args.conditions),
         episodes=args.episodes, batch_envs=args.batch_envs, device=args.device, seed=args.seed, out_dir=args.out,
+        **_given(args, "precision"),
     )  # fmt: skip
     result = evaluate_policy(config)
     print(format_table2(result))
@@ -287,6 +296,11 @@ def build_parser() -> argparse.ArgumentParser:
     dataset.add_argument("--frames-per-room", type=int, default=16, help="views per room (default 16)")
     dataset.set_defaults(func=_cmd_dataset)
 
+    def add_precision(command: argparse.ArgumentParser) -> None:
+        command.add_argument("--precision", choices=["auto", "fp32", "bf16"],
+                             help="torch compute precision on the CPU (default auto: bf16 + channels_last where the CPU has "
+                             "AMX/AVX512-BF16, fp32 channels_last on AVX2, else fp32; the choice is logged)")  # fmt: skip
+
     train = sub.add_parser("train", help="train the CMWAE encoder or the navigation policy")
     train_sub = train.add_subparsers(dest="what", required=True, metavar="WHAT")
     cmwae = train_sub.add_parser(
@@ -315,6 +329,10 @@ def build_parser() -> argparse.ArgumentParser:
     cmwae.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints")
     cmwae.add_argument("--resume", action="store_true", help="continue from the train state in --out")
     cmwae.add_argument("--minutes", type=float, help="stop (with a checkpoint) after this wall-clock time")
+    cmwae.add_argument("--corrupted-loss-weight", type=float,
+                       help="weight of a corrupted image's reconstruction error against a pristine one's (default 1: the paper's mean)")  # fmt: skip
+    cmwae.add_argument("--init-from", metavar="CMWAE_DIR", help="start from this encoder checkpoint's weights (not its optimizer or step)")
+    add_precision(cmwae)
     cmwae.set_defaults(func=_cmd_train_cmwae)
 
     policy = train_sub.add_parser(
@@ -346,6 +364,7 @@ def build_parser() -> argparse.ArgumentParser:
     policy.add_argument("--init-from", metavar="POLICY_DIR",
                         help="start from this policy checkpoint (fine-tuning); when it was trained on another encoder, "
                         "its latent normalisation is re-estimated on --encoder")  # fmt: skip
+    add_precision(policy)
     policy.set_defaults(func=_cmd_train_policy)
 
     evaluate = sub.add_parser("eval", help="evaluate a trained encoder (Table I) or policy (Table II)")
@@ -370,6 +389,7 @@ def build_parser() -> argparse.ArgumentParser:
                             help="side range of the square patches in px at 224x224 (default 1-50, Table I's; "
                             "100-100: S2's training squares; 1-30: the policy's training patches)")  # fmt: skip
     eval_cmwae.add_argument("--json", action="store_true", help="print the result as JSON on the last line")
+    add_precision(eval_cmwae)
     eval_cmwae.set_defaults(func=_cmd_eval_cmwae)
 
     def int_list(text: str) -> list[int]:
@@ -397,6 +417,7 @@ def build_parser() -> argparse.ArgumentParser:
     eval_policy.add_argument("--seed", type=int, default=0, help="seed of the rooms")
     eval_policy.add_argument("--out", help="directory for table2.json/.md and plots (default POLICY/eval)")
     eval_policy.add_argument("--json", action="store_true", help="print the result as JSON on the last line")
+    add_precision(eval_policy)
     eval_policy.set_defaults(func=_cmd_eval_policy)
 
     pipeline = sub.add_parser(

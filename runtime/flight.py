@@ -81,6 +81,7 @@ class EpisodeResult:
     watchdog_trips: list[dict] = field(default_factory=list)
     final_distance_m: float = float("nan")
     frames_rejected: int = 0  # unfit camera frames since FlightLoop.start (runtime.camera.validate)
+    tracking_error_peak_m_s: float = 0.0  # the largest tracking error sustained a whole window (runtime.tracking)
 
 
 class FlightLoop:
@@ -408,6 +409,7 @@ class FlightLoop:
             watchdog_trips=self.watchdog.records(),
             final_distance_m=round(final_distance_m, 3),
             frames_rejected=self.frames_rejected,
+            tracking_error_peak_m_s=round(self.watchdog.tracking_sustained_peak_m_s, 3),
         )
 
 

@@ -16,7 +16,8 @@ Exit codes: 0 success; 1 timeout or aborted in flight; 2 the episode could not b
 refused, no autopilot, not healthy, takeoff failed, ...).  The summary is written in every case
 it can be: ``{outcome: success|timeout|aborted, abort_reason, time_s, frames, missed_deadlines,
 step_ms {p50, p99}, stage_ms {stage: {p50, p99}}, watchdog_trips [...], log,
-t_launch_to_offboard_s, goal_rel_home_enu_m, final_distance_m, t_episode_start_s, injections, ...}``;
+t_launch_to_offboard_s, goal_rel_home_enu_m, final_distance_m, tracking_error_peak_m_s, t_episode_start_s,
+injections, ...}``;
 ``time_s`` runs from offboard start to the goal, ``t_launch_to_offboard_s`` from this process's
 start to offboard confirmed by telemetry; ``t_episode_start_s`` is when the episode started (the
 zero of the trips' ``t_s``) and ``injections`` ``[{kind, t_s}]`` when each injected fault first
@@ -253,6 +254,7 @@ def _fill(summary: dict, result: EpisodeResult) -> None:
         watchdog_trips=result.watchdog_trips,
         final_distance_m=result.final_distance_m,
         frames_rejected=result.frames_rejected,
+        tracking_error_peak_m_s=result.tracking_error_peak_m_s,
     )
 
 

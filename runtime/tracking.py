@@ -19,6 +19,7 @@ Pure numpy on numbers passed in (times in ``time.monotonic_ns``), so tests drive
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,9 +51,12 @@ class TrackingMonitor:
     with the yaw at that time); :meth:`update` returns the status the watchdog checks.
     """
 
-    def __init__(self, error_max_m_s: float, lag_s: float) -> None:
+    def __init__(self, error_max_m_s: float, lag_s: float, window_s: float) -> None:
         self.error_max_m_s = error_max_m_s
         self.lag_s = lag_s
+        self.window_s = window_s
+        self._recent: deque[tuple[int, float]] = deque()  # (t_ns, error) over the last window
+        self.sustained_peak_m_s = 0.0
         self._t_ns = 0
         self._ref_enu_m_s = np.zeros(3)
         self._cmd_vehicle_m_s = np.zeros(3)
@@ -68,6 +72,8 @@ class TrackingMonitor:
         self._cmd_vehicle_m_s = np.zeros(3)
         self._yaw_enu_rad = float(yaw_enu_rad)
         self._over_since_ns = None
+        self._recent.clear()
+        self.sustained_peak_m_s = 0.0
 
     def command(self, t_ns: int, vel_cmd_vehicle_m_s: np.ndarray) -> None:
         """A new velocity setpoint (vehicle frame V: forward, left, up; m/s) in force from ``t_ns``."""
@@ -85,7 +91,19 @@ class TrackingMonitor:
             self._over_since_ns = None
         elif self._over_since_ns is None:
             self._over_since_ns = t_ns
+        self._note_sustained(t_ns, norm if math.isfinite(norm) else 0.0)
         return TrackingStatus(t_ns, error_v, self._over_since_ns)
+
+    def _note_sustained(self, t_ns: int, error_m_s: float) -> None:
+        """Track ``sustained_peak_m_s``: the largest error that held for a whole window (the
+        smallest error of a window, at its largest).  A trip needs it above the bound; how far
+        below it stays in normal flight is the margin the defaults were tuned with."""
+        self._recent.append((t_ns, error_m_s))
+        window_ns = int(self.window_s * _NS_PER_S)
+        while len(self._recent) > 1 and self._recent[1][0] <= t_ns - window_ns:
+            self._recent.popleft()
+        if self._recent[0][0] <= t_ns - window_ns:
+            self.sustained_peak_m_s = max(self.sustained_peak_m_s, min(e for _, e in self._recent))
 
     @property
     def reference_enu_m_s(self) -> np.ndarray:

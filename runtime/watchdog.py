@@ -123,7 +123,7 @@ class Watchdog:
         self._home_z_enu_m = 0.0
         self._invalid_since_ns: int | None = None
         self._hold_pending = False
-        self._tracking = TrackingMonitor(config.tracking_error_max_m_s, config.tracking_lag_s)
+        self._tracking = TrackingMonitor(config.tracking_error_max_m_s, config.tracking_lag_s, config.tracking_window_s)
         self._tracking_status: TrackingStatus | None = None
         self._t_posvel_seen_ns = 0
         self._t_att_seen_ns = 0
@@ -152,6 +152,12 @@ class Watchdog:
         """Where supervision started (local ENU x, y, m): the centre of the horizontal geofence."""
         return self._start_xy_enu_m.copy()
 
+    @property
+    def tracking_sustained_peak_m_s(self) -> float:
+        """This episode's largest tracking error that held for a whole ``tracking_window_s`` (m/s):
+        a trip needs it above ``tracking_error_max_m_s``; in normal flight it shows the margin."""
+        return self._tracking.sustained_peak_m_s
+
     def records(self) -> list[dict]:
         return [t.record(self._t0_ns) for t in self.trips]
 
@@ -170,7 +176,8 @@ class Watchdog:
         self._home_z_enu_m = float(state.home_enu_m[2])
         self._invalid_since_ns = None
         self._hold_pending = False
-        self._tracking = TrackingMonitor(self.config.tracking_error_max_m_s, self.config.tracking_lag_s)
+        cfg = self.config
+        self._tracking = TrackingMonitor(cfg.tracking_error_max_m_s, cfg.tracking_lag_s, cfg.tracking_window_s)
         self._tracking.start(now_ns, state.vel_enu_m_s, state.yaw_enu_rad)
         self._tracking_status = None
         self._t_posvel_seen_ns = state.t_posvel_ns

@@ -273,6 +273,7 @@ def merge_summary(
         "step_ms": flight.get("step_ms"),
         "stage_ms": flight.get("stage_ms"),
         "watchdog_trips": trips,
+        "tracking_error_peak_m_s": flight.get("tracking_error_peak_m_s"),
         "t_launch_to_offboard_s": flight.get("t_launch_to_offboard_s"),
         "wall_s": round(wall_s, 2),
         "level": request.level,

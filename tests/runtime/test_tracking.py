@@ -23,7 +23,7 @@ TICK_S = 0.02  # telemetry / watchdog period
 
 
 def _monitor() -> TrackingMonitor:
-    monitor = TrackingMonitor(CFG.tracking_error_max_m_s, CFG.tracking_lag_s)
+    monitor = TrackingMonitor(CFG.tracking_error_max_m_s, CFG.tracking_lag_s, CFG.tracking_window_s)
     monitor.start(T0, np.zeros(3), 0.0)
     return monitor
 
@@ -64,6 +64,14 @@ def test_error_above_the_bound_counts_from_when_it_crossed_and_resets_below():
     assert nan.over_since_ns is None
 
 
+def test_sustained_peak_is_the_largest_error_held_for_a_whole_window():
+    monitor = _monitor()
+    errors = [0.3] * 10 + [1.5] * 3 + [0.6] * 60 + [0.2] * 5  # samples 0.1 s apart; window 1 s
+    for k, error in enumerate(errors):
+        monitor.update(_ns(0.1 * k), np.array([-error, 0.0, 0.0]), 0.0)  # reference stays zero
+    assert monitor.sustained_peak_m_s == pytest.approx(0.6)  # the 1.5 spike lasted 0.3 s
+
+
 def test_tilt():
     assert tilt_rad(quat_from_euler(0.0, 0.0, 2.0)) == pytest.approx(0.0, abs=1e-7)
     assert tilt_rad(quat_from_euler(0.3, 0.0, 1.0)) == pytest.approx(0.3)
@@ -93,7 +101,8 @@ _actions = st.lists(
 
 def _fly(actions, follow, t_end_s: float, stuck_at_s: float | None = None, min_speed_m_s: float = 0.0):
     """Fly the command sequence against ``follow(vel_enu, target_enu, dt) -> vel_enu``; returns
-    (first time over the bound for longer than the window (s) or None, max error)."""
+    (first time over the bound for longer than the window (s) or None, max error, the largest
+    error sustained for a window)."""
     monitor = _monitor()
     vel_enu, yaw, t_s, max_error = np.zeros(3), 0.0, 0.0, 0.0
     schedule = []
@@ -119,8 +128,8 @@ def _fly(actions, follow, t_end_s: float, stuck_at_s: float | None = None, min_s
         status = monitor.update(_ns(t_s), vel_enu, yaw)
         max_error = max(max_error, status.error_m_s)
         if status.over_since_ns is not None and _ns(t_s) - status.over_since_ns > window_ns:
-            return t_s, max_error
-    return None, max_error
+            return t_s, max_error, monitor.sustained_peak_m_s
+    return None, max_error, monitor.sustained_peak_m_s
 
 
 @settings(max_examples=150, deadline=None)
@@ -138,8 +147,9 @@ def test_a_vehicle_that_follows_like_px4_never_trips(actions, lag_s, gain, drift
         goal = gain * target + np.array([0.0, 0.0, drift_up_m_s])
         return goal + (vel - goal) * math.exp(-dt / lag_s)
 
-    trip_s, max_error = _fly(actions, follow, t_end_s=10.0)
+    trip_s, max_error, sustained_m_s = _fly(actions, follow, t_end_s=10.0)
     assert trip_s is None, f"tripped at {trip_s:.2f} s (max error {max_error:.2f} m/s)"
+    assert sustained_m_s <= CFG.tracking_error_max_m_s
 
 
 @settings(max_examples=100, deadline=None)
@@ -152,8 +162,8 @@ def test_a_vehicle_that_stops_following_trips_after_the_window(actions, stuck_at
     def follow(vel, target, dt):  # the monitor's own model: zero error until stuck
         return target + (vel - target) * math.exp(-dt / CFG.tracking_lag_s)
 
-    trip_s, _ = _fly(actions, follow, t_end_s=stuck_at_s + 5.0, stuck_at_s=stuck_at_s, min_speed_m_s=1.0)
-    assert trip_s is not None
+    trip_s, _, sustained_m_s = _fly(actions, follow, t_end_s=stuck_at_s + 5.0, stuck_at_s=stuck_at_s, min_speed_m_s=1.0)
+    assert trip_s is not None and sustained_m_s > CFG.tracking_error_max_m_s
     assert trip_s > stuck_at_s + CFG.tracking_window_s
     # The reference of a 1 m/s command turning at the contract's top yaw rate settles at amplitude
     # 1 / sqrt(1 + (rate lag)^2) (0.89 m/s); from rest it passes the bound within lag ln(A / (A - bound)).

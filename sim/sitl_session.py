@@ -320,7 +320,9 @@ def run_sitl_cli(args: argparse.Namespace) -> int:
         f"{summary['outcome']}: level {summary['level']} seed {summary['seed']}, "
         f"time {summary['time_s']} s, path {summary['path_m']} m, step p50/p99 "
         f"{(summary['step_ms'] or {}).get('p50')}/{(summary['step_ms'] or {}).get('p99')} ms, "
-        f"watchdog trips {len(summary['watchdog_trips'])}\nlog {summary['log']}\nplot {summary['plot']}"
+        f"watchdog trips {len(summary['watchdog_trips'])}"
+        + (f", crash detected after {summary['crash_detect_ms']} ms" if "crash_detect_ms" in summary else "")
+        + f"\nlog {summary['log']}\nplot {summary['plot']}"
     )
     for fault in summary.get("faults", []):
         print(f"fault {fault['kind']}@{fault['at_s']:g}: trip {fault['cause']} detected in {fault['detect_ms']} ms, "

@@ -8,8 +8,9 @@ limit for too long, geofence (horizontal distance from where supervision started
 above home; a goal outside it is refused when the episode starts); and the outcome: the vehicle
 not following its velocity commands (``tracking``: error above a bound for longer than a window,
 ``runtime.tracking``), tilted past a flip/tumble bound (``attitude``), or the autopilot's own word
-(``vehicle_fault``: a STATUSTEXT of severity CRITICAL or worse, or a disarm in flight).  Before supervision, a
-refused start (offboard refused by the autopilot) is recorded with :meth:`Watchdog.refuse_start`.
+(``vehicle_fault``: a STATUSTEXT of severity CRITICAL or worse, or a disarm in flight).  Before
+supervision, a refused start (offboard refused by the autopilot) is recorded with
+:meth:`Watchdog.refuse_start`.
 
 Response to a trip: a zero-velocity (hover) setpoint at once, then ``offboard.stop()`` (PX4
 Hold) after ``hold_grace_s``.  Pilot left offboard: the runtime stops commanding at once and

@@ -251,7 +251,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--inject", action="append", default=[], metavar="KIND@SECONDS",
         help="inject a fault SECONDS after offboard start (repeatable): camera-stall, camera-garbage, "
         "camera-blackout, telemetry-loss, pilot-takeover, offboard-refused@0, inference-overrun, nan-action, "
-        "geofence, runtime-kill; the summary then lists each fault's trip, detection time and stop time",
+        "geofence, runtime-kill, vehicle-stuck; the summary then lists each fault's trip, detection time and stop time",
     )  # fmt: skip
     sitl.set_defaults(func=_cmd_sitl)
 

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from .camera.realsense import RealSenseConfig
 from .contract import CONTROL_PERIOD_S, ActionLimits
+from .contract.constants import MAX_INCLINATION_RAD, MAX_SPEED_M_S
 
 
 class ConfigError(ValueError):
@@ -53,6 +54,21 @@ class WatchdogConfig:
     altitude_max_m: float = 8.0
     hold_grace_s: float = 1.0  # hover this long after a trip, then offboard.stop() (PX4 Hold)
     period_s: float = 0.02  # how often the watchdog task checks the time-based trips
+    # Tracking (runtime.tracking): the measured velocity against the command passed through a
+    # first-order lag of tracking_lag_s; an error (vehicle frame, m/s) above tracking_error_max_m_s
+    # for longer than tracking_window_s trips.  Tuned on SITL flights of the default model (levels 0
+    # and 3, mostly at 2 m/s: error p95 0.33 m/s, max 0.35 m/s; the largest error held for a whole
+    # window 0.14-0.18 m/s) and the goal-seeker, with room for a real PX4: 2.0 m/s commanded levels
+    # at ~1.6 m/s and the height drifts ~0.3 m/s (0.5 m/s together; tests/runtime/test_tracking.py
+    # flies that model); a stuck vehicle commanded the goal-seeker's 1 m/s cruise shows 1 m/s.
+    tracking_error_max_m_s: float = 0.8
+    tracking_window_s: float = 1.0
+    tracking_lag_s: float = 0.5
+    # Attitude: tilt (body up axis vs world up) above this for longer than tilt_window_s trips: the
+    # vehicle is flipped or tumbling.  PX4's failure detector uses the same defaults (FD_FAIL_R/P
+    # 60 deg, FD_FAIL_R/P_TTRI 0.3 s); the contract's inclination limit (45 deg) is the floor.
+    tilt_max_deg: float = 60.0
+    tilt_window_s: float = 0.3
 
     def __post_init__(self) -> None:
         for key in (
@@ -64,8 +80,28 @@ class WatchdogConfig:
             "altitude_max_m",
             "hold_grace_s",
             "period_s",
+            "tracking_window_s",
+            "tilt_window_s",
         ):
             _positive(f"watchdog.{key}", getattr(self, key))
+        _require(
+            isinstance(self.tracking_error_max_m_s, (int, float)) and 0.1 <= self.tracking_error_max_m_s <= MAX_SPEED_M_S,
+            "watchdog.tracking_error_max_m_s",
+            self.tracking_error_max_m_s,
+            f"in [0.1, {MAX_SPEED_M_S}] m/s (the contract's top speed: a larger bound could never trip)",
+        )
+        _require(
+            isinstance(self.tracking_lag_s, (int, float)) and 0.05 <= self.tracking_lag_s <= 2.0,
+            "watchdog.tracking_lag_s",
+            self.tracking_lag_s,
+            "in [0.05, 2] s (the velocity controller's time constant)",
+        )
+        _require(
+            isinstance(self.tilt_max_deg, (int, float)) and math.degrees(MAX_INCLINATION_RAD) <= self.tilt_max_deg < 180.0,
+            "watchdog.tilt_max_deg",
+            self.tilt_max_deg,
+            f"in [{math.degrees(MAX_INCLINATION_RAD):.0f}, 180) deg (no lower than the contract's inclination limit)",
+        )
         _require(
             self.step_trip_ms >= 1000.0 * CONTROL_PERIOD_S,
             "watchdog.step_trip_ms",

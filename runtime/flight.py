@@ -8,7 +8,8 @@
   command gate; deadline = the control period (missed deadlines counted; the watchdog trips
   past ``step_trip_ms``); goal reached (within GOAL_REACHED_RADIUS_M) ends the episode;
 - watchdog task: the time-based trips and the hover -> Hold response;
-- state task: vehicle telemetry into the flight log at 10 Hz.
+- state task: vehicle telemetry into the flight log at 10 Hz, and each of the autopilot's
+  STATUSTEXTs once.
 
 :class:`FlightLoop` knows nothing about how offboard was entered: the SITL entry point arms, takes
 off and starts offboard itself; a field entry point waits for the pilot to switch to offboard.
@@ -80,6 +81,7 @@ class EpisodeResult:
     watchdog_trips: list[dict] = field(default_factory=list)
     final_distance_m: float = float("nan")
     frames_rejected: int = 0  # unfit camera frames since FlightLoop.start (runtime.camera.validate)
+    tracking_error_peak_m_s: float = 0.0  # the largest tracking error sustained a whole window (runtime.tracking)
 
 
 class FlightLoop:
@@ -258,9 +260,15 @@ class FlightLoop:
                 self.recorder.log_frame(frame)
 
     async def _state_log_task(self) -> None:
+        status_seq_logged = 0
         while True:
+            state = self.vehicle.state()
             if self.recorder is not None:
-                self.recorder.log_state(time.monotonic_ns(), self.vehicle.state())
+                self.recorder.log_state(time.monotonic_ns(), state)
+                for text in state.status_texts:
+                    if text.seq > status_seq_logged:
+                        self.recorder.log_status_text(text)
+            status_seq_logged = state.status_texts[-1].seq if state.status_texts else status_seq_logged
             await asyncio.sleep(STATE_LOG_PERIOD_S)
 
     async def _watchdog_task(self) -> None:
@@ -340,6 +348,8 @@ class FlightLoop:
             await self.watchdog.trip(TripCause.POLICY_ERROR, f"velocity command failed: {err}", now, now)
             return False
         t_cmd = time.monotonic_ns()
+        if sent:
+            self.watchdog.note_command(t_cmd, cmd_flu)
         self._memory.advance(result)
         stages_ms = {
             "preprocess": (result.t_preprocessed_ns - t_start) / _NS_PER_MS,
@@ -399,6 +409,7 @@ class FlightLoop:
             watchdog_trips=self.watchdog.records(),
             final_distance_m=round(final_distance_m, 3),
             frames_rejected=self.frames_rejected,
+            tracking_error_peak_m_s=round(self.watchdog.tracking_sustained_peak_m_s, 3),
         )
 
 

@@ -6,7 +6,8 @@ to ``--takeoff-alt-m`` and waits for Hold there, sets a hover setpoint, starts o
 the policy (:class:`runtime.flight.FlightLoop`) until within GOAL_REACHED_RADIUS_M of the goal,
 the time limit or an abort, hovers, Holds, lands, waits for disarm and writes the summary JSON.
 If the autopilot refuses offboard, it records the trip (``offboard_refused``), commands Hold and
-lands without flying; if the pilot takes over, it stops commanding and does nothing more.
+lands without flying; if the pilot takes over, it stops commanding and does nothing more; after
+a ``vehicle_fault`` trip with the vehicle disarmed (a crash), there is nothing to land.
 ``--inject`` (tests only) injects the runtime's faults of ``runtime.faults``.
 
 Unlike the field program this one arms and takes off by itself: that is what a SITL dry run is.
@@ -15,7 +16,8 @@ Exit codes: 0 success; 1 timeout or aborted in flight; 2 the episode could not b
 refused, no autopilot, not healthy, takeoff failed, ...).  The summary is written in every case
 it can be: ``{outcome: success|timeout|aborted, abort_reason, time_s, frames, missed_deadlines,
 step_ms {p50, p99}, stage_ms {stage: {p50, p99}}, watchdog_trips [...], log,
-t_launch_to_offboard_s, goal_rel_home_enu_m, final_distance_m, t_episode_start_s, injections, ...}``;
+t_launch_to_offboard_s, goal_rel_home_enu_m, final_distance_m, tracking_error_peak_m_s, t_episode_start_s,
+injections, ...}``;
 ``time_s`` runs from offboard start to the goal, ``t_launch_to_offboard_s`` from this process's
 start to offboard confirmed by telemetry; ``t_episode_start_s`` is when the episode started (the
 zero of the trips' ``t_s``) and ``injections`` ``[{kind, t_s}]`` when each injected fault first
@@ -52,6 +54,7 @@ log = logging.getLogger("runtime.sitl_flight")
 
 T_IMPORT_NS = time.monotonic_ns()
 FIRST_FRAME_TIMEOUT_S = 10.0
+DISARM_REPORT_TIMEOUT_S = 1.5  # after a vehicle fault: a crashed vehicle's disarm shows within a HEARTBEAT
 LOG_NAME = "flight.mcap"
 
 
@@ -164,6 +167,9 @@ async def fly_episode(args: argparse.Namespace, summary: dict) -> EpisodeResult:
         if loop.watchdog.pilot_took_over:
             log.warning("the pilot took over: not landing, the vehicle is theirs")
             return result
+        if result.abort_reason == TripCause.VEHICLE_FAULT.value and not await _still_armed(vehicle):
+            log.warning("the autopilot reported a fault and disarmed: nothing to land")
+            return result
         await vehicle.land()
         await vehicle.wait_disarmed()
         log.info("landed and disarmed")
@@ -180,6 +186,15 @@ async def fly_episode(args: argparse.Namespace, summary: dict) -> EpisodeResult:
         await close_step("the flight log", lambda: in_daemon_thread("recorder-close", recorder.close))
         summary["recorder"] = vars(recorder.stats).copy()
         await close_step("MAVSDK", vehicle.close)
+
+
+async def _still_armed(vehicle: Vehicle) -> bool:
+    """Armed, as the next HEARTBEAT says (PX4 sends one a second: a disarm may not show yet)."""
+    try:
+        await vehicle.wait_until(lambda s: not s.armed, DISARM_REPORT_TIMEOUT_S, "disarmed")
+    except VehicleError:
+        return True
+    return False
 
 
 async def _offboard_refused(loop: FlightLoop, vehicle: Vehicle, err: VehicleError, t_request_ns: int) -> EpisodeResult:
@@ -239,6 +254,7 @@ def _fill(summary: dict, result: EpisodeResult) -> None:
         watchdog_trips=result.watchdog_trips,
         final_distance_m=result.final_distance_m,
         frames_rejected=result.frames_rejected,
+        tracking_error_peak_m_s=result.tracking_error_peak_m_s,
     )
 
 

@@ -4,7 +4,9 @@ processes over loopback, merged into one summary (JSON), an MCAP log and a top-v
 The SITL vehicle (``python -m sim.sitl``) owns ground truth: world, trajectory, collisions,
 invalid-depth fraction of every served frame.  The runtime (``python -m runtime.sitl_flight``)
 owns what it did: outcome as it saw it, step timing, watchdog trips, MCAP log.  A collision in
-the ground truth overrides the runtime's view (a crash is a crash, whatever the runtime thinks).
+the ground truth overrides the runtime's view (a crash is a crash, whatever the runtime thinks): the summary's ``time_s`` is
+then the crash time in ground truth, and ``crash_detect_ms`` how long the runtime took to trip
+on it (its ``tracking`` or ``vehicle_fault`` trip; null if it never did).
 
 Fault injection (``--inject KIND@SECONDS``, ``runtime.faults``): each fault goes to the process
 where it happens (vehicle or runtime); ``runtime-kill`` is done here, SIGKILL to the runtime's
@@ -33,7 +35,7 @@ import numpy as np
 from runtime.contract.constants import GOAL_REACHED_RADIUS_M
 from runtime.faults import FaultKind, FaultSite, Injection, InjectionError, parse_injection
 
-from .fault_report import fault_records, vehicle_failsafe_trip
+from .fault_report import fault_records, runtime_trip_after, vehicle_failsafe_trip
 from .plot import plot_top_view
 
 log = logging.getLogger(__name__)
@@ -256,10 +258,13 @@ def merge_summary(
     if t_kill_s is not None:
         failsafe, _ = vehicle_failsafe_trip([(t, m) for t, m in trace["mode_log"]], t_kill_s)
         trips += [failsafe] if failsafe is not None else []
+    time_s = flight.get("time_s")
+    if collision:
+        time_s, crash_detect_ms = crash_timing(collision, flight, t_offboard)
     summary = {
         "outcome": outcome,
         "abort_reason": flight.get("abort_reason"),
-        "time_s": flight.get("time_s"),
+        "time_s": time_s,
         "path_m": round(_path_length_m(flown), 3),
         "final_distance_m": round(final_dist_m, 3),
         "invalid_depth_pct": _percent_stats(frame_fracs),
@@ -268,6 +273,7 @@ def merge_summary(
         "step_ms": flight.get("step_ms"),
         "stage_ms": flight.get("stage_ms"),
         "watchdog_trips": trips,
+        "tracking_error_peak_m_s": flight.get("tracking_error_peak_m_s"),
         "t_launch_to_offboard_s": flight.get("t_launch_to_offboard_s"),
         "wall_s": round(wall_s, 2),
         "level": request.level,
@@ -279,10 +285,22 @@ def merge_summary(
     }
     if collision:
         summary["collision"] = collision
+        summary["crash_detect_ms"] = crash_detect_ms
     if request.injections:
         summary["faults"] = fault_records(request.injections, trace, flight, t_kill_s)
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
+
+
+def crash_timing(collision: dict, flight: dict, t_offboard: float | None) -> tuple[float | None, float | None]:
+    """A crash's ``time_s`` (ground truth: the collision, s after the episode started, as the
+    runtime counts ``time_s``; else after the vehicle's OFFBOARD entry) and ``crash_detect_ms``:
+    collision -> the runtime's first trip at or after it (ms), None if it never tripped."""
+    t_crash = float(collision["t_s"])
+    t0 = flight.get("t_episode_start_s", t_offboard)
+    time_s = None if t0 is None else round(t_crash - t0, 3)
+    trip, t_trip = runtime_trip_after(flight, t_crash)
+    return time_s, None if trip is None else round(1000.0 * (t_trip - t_crash), 1)
 
 
 def run_sitl_cli(args: argparse.Namespace) -> int:
@@ -302,7 +320,9 @@ def run_sitl_cli(args: argparse.Namespace) -> int:
         f"{summary['outcome']}: level {summary['level']} seed {summary['seed']}, "
         f"time {summary['time_s']} s, path {summary['path_m']} m, step p50/p99 "
         f"{(summary['step_ms'] or {}).get('p50')}/{(summary['step_ms'] or {}).get('p99')} ms, "
-        f"watchdog trips {len(summary['watchdog_trips'])}\nlog {summary['log']}\nplot {summary['plot']}"
+        f"watchdog trips {len(summary['watchdog_trips'])}"
+        + (f", crash detected after {summary['crash_detect_ms']} ms" if "crash_detect_ms" in summary else "")
+        + f"\nlog {summary['log']}\nplot {summary['plot']}"
     )
     for fault in summary.get("faults", []):
         print(f"fault {fault['kind']}@{fault['at_s']:g}: trip {fault['cause']} detected in {fault['detect_ms']} ms, "

@@ -17,7 +17,7 @@ from onnx import TensorProto, helper, numpy_helper
 from bench.runtime import count_flops, cpu_peak, format_runtime_bench
 from export.policy_onnx import export_policy
 from export.variants import VARIANTS, variant_path
-from tests.export.test_policy_onnx import _encoder, _policy
+from tests.export.test_policy_onnx import TEST_BOUND, _encoder, _policy, record_flights
 from training.checkpoint import checkpoint_fingerprint
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -29,7 +29,8 @@ def exported(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("bench")
     encoder = _encoder(tmp / "encoder")
     policy = _policy(tmp / "policy", checkpoint_fingerprint(encoder))
-    export_policy(encoder, policy, tmp / "model.onnx", variants=VARIANTS, random_samples=2)
+    export_policy(encoder, policy, tmp / "model.onnx", recorded=record_flights(tmp, 2), variants=VARIANTS, random_samples=2,
+                  recorded_samples=4, bound=TEST_BOUND)  # fmt: skip
     return tmp / "model.onnx", encoder, policy
 
 

@@ -186,7 +186,7 @@ def _cmd_bench_runtime(args: argparse.Namespace) -> int:
     config = RuntimeBenchConfig(
         model=Path(args.model), encoder=args.encoder and Path(args.encoder), policy=args.policy and Path(args.policy),
         sitl=not args.no_sitl, sitl_level=args.level, sitl_seed=args.seed, sitl_timeout_s=args.sitl_timeout,
-        out_dir=Path(args.out), variants=not args.no_variants,
+        out_dir=Path(args.out), variants=not args.no_variants, pin=not args.no_pin,
     )  # fmt: skip
     try:
         result = run_runtime_bench(quick(config) if args.quick else config)
@@ -482,14 +482,17 @@ def build_parser() -> argparse.ArgumentParser:
         "SITL grab->command; ratios against the targets",
         description="In one run: p50/p99 of preprocessing, the ONNX step with 1 and 2 intra-op threads (and its "
         "fp16/int8 variants found next to the model), the same networks in torch eager (with --encoder/--policy), "
-        "and grab->command in one short SITL flight; the model's FLOPs, this CPU's theoretical FP32 peak and its "
+        "and grab->command in one short SITL flight per CPU model (fp32 and int8), the runtime pinned to a core of its "
+        "own with 1 intra-op thread and the SITL vehicle on the other cores, with the overhead split by stage; the model's FLOPs, this CPU's theoretical FP32 peak and its "
         "achieved GEMM rate; and the ratios against the targets (ONNX <= 0.65x eager, <= 1.3x ideal, overhead "
         "<= 3 ms p99, end to end <= 25 ms p99) with PASS/MISS.",
     )
     bench_runtime.add_argument("--model", required=True, help="ONNX model with the runtime's contract (cmnav export)")
     bench_runtime.add_argument("--encoder", help="the CMWAE checkpoint the model was exported from (for the torch eager rows)")
     bench_runtime.add_argument("--policy", help="the policy checkpoint the model was exported from (for the torch eager rows)")
-    bench_runtime.add_argument("--no-sitl", action="store_true", help="skip the SITL flight (no end-to-end rows)")
+    bench_runtime.add_argument("--no-sitl", action="store_true", help="skip the SITL flights (no end-to-end rows)")
+    bench_runtime.add_argument("--no-pin", action="store_true", help="SITL: do not pin the runtime to a core of its own "
+                               "(default: runtime on the last CPU with 1 intra-op thread, the SITL vehicle on the others)")  # fmt: skip
     bench_runtime.add_argument("--no-variants", action="store_true", help="do not time MODEL.fp16.onnx / MODEL.int8.onnx")
     bench_runtime.add_argument("--level", type=int, default=0, help="SITL curriculum level (default 0)")
     bench_runtime.add_argument("--seed", type=int, default=0, help="SITL world seed (default 0)")

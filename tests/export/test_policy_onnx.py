@@ -198,14 +198,21 @@ def test_variants_load_with_their_parity_stated(exported, recorded_logs):
     assert int8["bound"] == {"max_action_error": TEST_BOUND.max_action_error, "min_held_out_steps": TEST_BOUND.min_held_out_steps}
     assert "bound: action <= 0.2, met" in report.format()
     quantised = onnx.load(int8["path"])
-    # Only the convolutions are quantised: every Conv reads a dequantised weight, no Gemm does.
+    # Only the gray stack's convolutions are quantised: each reads a dequantised weight; the depth
+    # stack's convolutions and every Gemm (encoder FC, MLP, GRU, head) stay fp32.
     dequantised = {n.output[0] for n in quantised.graph.node if n.op_type == "DequantizeLinear"}
     convs = [n for n in quantised.graph.node if n.op_type == "Conv"]
-    gemms = [n for n in quantised.graph.node if n.op_type in ("Gemm", "MatMul")]
-    assert convs and all(n.input[1] in dequantised for n in convs)
-    assert gemms and not any(i in dequantised for n in gemms for i in n.input)
+    gray = [n for n in convs if n.name.startswith("/encoder/gray/")]
+    others = [n for n in quantised.graph.node if n.op_type in ("Conv", "Gemm", "MatMul") and n not in gray]
+    assert gray and all(n.input[1] in dequantised for n in gray)
+    assert len(others) > len(gray) and not any(i in dequantised for n in others for i in n.input)
+    assert json.loads(meta_of(int8["path"])[KEY_PARITY])["quantised_nodes"] == [n.name for n in gray]
     fp16 = onnx.load(report.variants["fp16"]["path"])
     assert any(t.data_type == onnx.TensorProto.FLOAT16 for t in fp16.graph.initializer)
+
+
+def meta_of(path: str | Path) -> dict[str, str]:
+    return {p.key: p.value for p in onnx.load(str(path)).metadata_props}
 
 
 def test_int8_over_its_bound_is_refused_with_the_numbers(checkpoints, recorded_logs, tmp_path):

@@ -382,6 +382,12 @@ def recorded_inputs(log_path: str | Path, step: RuntimeStep, count: int = RECORD
     )  # fmt: skip
 
 
+def _log_name(path: str | Path) -> str:
+    """A flight log's folder and name (cmnav sitl names every log flight.mcap in its run folder)."""
+    path = Path(path)
+    return f"{path.parent.name}/{path.name}"
+
+
 def flight_inputs(log_path: str | Path, hidden_size: int) -> StepInputs:
     """Every policy step of one flight log (:func:`recorded_steps`), hidden state zero and
     ``resets`` marking the steps where the flight reset it: for :func:`carried_outputs`, where each
@@ -396,7 +402,7 @@ def flight_inputs(log_path: str | Path, hidden_size: int) -> StepInputs:
         epoch = step_epoch
     return StepInputs(
         np.concatenate(gray), np.concatenate(depth), np.concatenate(state),
-        np.zeros((len(state), hidden_size), dtype=np.float32), source=f"{len(state)} steps of {Path(log_path).name}",
+        np.zeros((len(state), hidden_size), dtype=np.float32), source=f"{len(state)} steps of {_log_name(log_path)}",
         resets=np.asarray(resets),
     )  # fmt: skip
 
@@ -599,7 +605,7 @@ def split_recorded(logs: list[Path], session: ort.InferenceSession, hidden_size:
         flight = with_carried_hidden(session, flight_inputs(path, hidden_size))
         rows = np.unique(np.linspace(0, len(flight) - 1, min(per_flight, len(flight))).round().astype(int))
         parts.append(flight.subset(rows, flight.source))
-    names = ", ".join(p.name for p in logs[:n_calibration])
+    names = ", ".join(_log_name(p) for p in logs[:n_calibration])
     calibration = concat_inputs(parts, f"{sum(len(p) for p in parts)} steps of {n_calibration} flights ({names})")
     held = ", ".join(str(p) for p in logs[n_calibration:])
     return RecordedSplit(calibration, logs[n_calibration:], None,

@@ -194,7 +194,7 @@ def test_variants_load_with_their_parity_stated(exported, recorded_logs):
         assert 0.0 < action_error <= VARIANT_ACTION_BOUND[variant]
         assert 0.0 <= info["mean_abs_error_vs_fp32"][c.ONNX_OUTPUT_ACTION] <= action_error
     int8 = report.variants["int8"]
-    assert int8["calibration"].endswith(f"of 1 flights ({recorded_logs[0].name})") and report.variants["fp16"]["calibration"] is None
+    assert int8["calibration"].endswith(f"of 1 flights ({recorded_logs[0].parent.name}/{recorded_logs[0].name})") and report.variants["fp16"]["calibration"] is None
     assert int8["bound"] == {"max_action_error": TEST_BOUND.max_action_error, "min_held_out_steps": TEST_BOUND.min_held_out_steps}
     assert "bound: action <= 0.2, met" in report.format()
     quantised = onnx.load(int8["path"])

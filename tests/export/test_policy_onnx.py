@@ -293,3 +293,20 @@ def test_cli(checkpoints, tmp_path):
 
     proc = subprocess.run([sys.executable, "-m", "cmnav", "export", "-o", str(out)], capture_output=True, text=True, cwd=ROOT)
     assert proc.returncode == 2 and "--encoder, --policy required" in proc.stderr
+
+
+def test_carried_outputs_replay_the_recorded_flight(recorded_logs, tmp_path):
+    """A model carrying its own GRU state through a recorded flight (resets where the flight reset
+    it) reproduces the actions that flew; without the resets it does not: how the variants are judged."""
+    from export.policy_onnx import carried_outputs, cpu_session, flight_inputs
+    from runtime.log_reader import STEP_TOPICS, FlightLogReader
+    from tests.runtime.onnx_models import recurrent_step_model, save
+
+    session = cpu_session(save(recurrent_step_model(), tmp_path / "recurrent.onnx"))
+    flight = flight_inputs(recorded_logs[0], hidden_size=8)
+    flown = np.stack([s.action_raw for s in FlightLogReader(recorded_logs[0]).records(STEP_TOPICS)])
+    assert len(flight) == len(flown) > 10 and flight.resets.sum() == 2  # two episodes
+    np.testing.assert_allclose(carried_outputs(session, flight)[c.ONNX_OUTPUT_ACTION], flown, atol=1e-5)
+    no_reset = flight.subset(slice(None), "no resets")
+    no_reset.resets[1:] = False
+    assert np.abs(carried_outputs(session, no_reset)[c.ONNX_OUTPUT_ACTION] - flown).max() > 1e-3

@@ -351,6 +351,13 @@ class RuntimeConfig:
     runtime: ProcessConfig = field(default_factory=ProcessConfig)
 
     def __post_init__(self) -> None:
+        pinned = self.runtime.cpu_affinity
+        _require(
+            not pinned or self.policy.intra_op_threads <= len(pinned),
+            "policy.intra_op_threads",
+            self.policy.intra_op_threads,
+            f"<= the {len(pinned)} CPU(s) of runtime.cpu_affinity (more threads than pinned cores only take turns; 1 on one core)",
+        )
         goal = self.mission.goal_rel_home_enu_m
         if goal is None:
             return

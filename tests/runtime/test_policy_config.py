@@ -104,6 +104,8 @@ def test_cpu_affinity_is_validated(models, tmp_path):
         ProcessConfig(cpu_affinity=(0, 0))
     with pytest.raises(ConfigError, match=r"runtime\.cpu_affinity\[0\] = 'one' is a string: must be an integer"):
         load_config(_config(tmp_path, extra='[runtime]\ncpu_affinity = ["one"]\n'))
+    with pytest.raises(ConfigError, match=r"policy\.intra_op_threads=2 is invalid: must be <= the 1 CPU\(s\) of runtime\.cpu_affinity"):
+        load_config(_config(tmp_path, "intra_op_threads = 2", extra=f"[runtime]\ncpu_affinity = [{ALLOWED[0]}]\n"))
 
 
 def test_pin_process_pins_every_thread():

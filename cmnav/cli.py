@@ -31,7 +31,7 @@ def _cmd_export_policy(args: argparse.Namespace) -> int:
     if missing:
         print(f"cmnav export: {', '.join(missing)} required (or `cmnav export goal-seeker -o PATH`)", file=sys.stderr)
         return 2
-    from export.policy_onnx import ExportError, export_policy
+    from export.policy_onnx import ExportError, VariantRefusedError, export_policy
     from runtime.contract import ContractMismatchError
     from runtime.log_reader import ReplayError
     from runtime.model import ModelLoadError
@@ -39,6 +39,12 @@ def _cmd_export_policy(args: argparse.Namespace) -> int:
     variants = tuple(v for v in args.variants.split(",") if v) if args.variants else ()
     try:
         report = export_policy(args.encoder, args.policy, args.model_out, recorded=args.recorded, variants=variants)
+    except VariantRefusedError as err:  # the fp32 model (and any other variant) was written
+        print(err.report.format())
+        if args.json:
+            print(json.dumps(err.report.to_json()))
+        print(f"cmnav export: {err}", file=sys.stderr)
+        return 2
     except (ExportError, ReplayError, ModelLoadError, ContractMismatchError) as err:
         print(f"cmnav export: {err}", file=sys.stderr)
         return 2
@@ -189,7 +195,7 @@ def _cmd_bench_runtime(args: argparse.Namespace) -> int:
     config = RuntimeBenchConfig(
         model=Path(args.model), encoder=args.encoder and Path(args.encoder), policy=args.policy and Path(args.policy),
         sitl=not args.no_sitl, sitl_level=args.level, sitl_seed=args.seed, sitl_timeout_s=args.sitl_timeout,
-        out_dir=Path(args.out), variants=not args.no_variants,
+        out_dir=Path(args.out), variants=not args.no_variants, pin=not args.no_pin,
     )  # fmt: skip
     try:
         result = run_runtime_bench(quick(config) if args.quick else config)
@@ -447,7 +453,7 @@ def build_parser() -> argparse.ArgumentParser:
     export = sub.add_parser(
         "export",
         help="write an ONNX model for the runtime: trained encoder + policy, or the goal-seeker",
-        usage="cmnav export --encoder CKPT --policy CKPT -o MODEL.onnx [--recorded LOG.mcap] [--variants fp16,int8] [--json]\n"
+        usage="cmnav export --encoder CKPT --policy CKPT -o MODEL.onnx [--recorded LOG.mcap ...] [--variants fp16,int8] [--json]\n"
         "       cmnav export goal-seeker -o MODEL.onnx",
         description="Build one ONNX graph for the runtime's control step from a CMWAE encoder checkpoint (its encoder "
         "only) and a policy checkpoint: (gray, depth, state, GRU hidden) -> (action, next hidden, latent), batch 1, "
@@ -455,13 +461,17 @@ def build_parser() -> argparse.ArgumentParser:
         "fingerprints, data, seed, eval tables) in its metadata.  Refuses a policy trained on another encoder.  "
         "Checks ONNX Runtime against torch on random inputs (and on a flight log's frames with --recorded), "
         "max abs error <= 1e-4, then loads the file with the runtime's own loader.  --variants also writes "
-        "MODEL.fp16.onnx / MODEL.int8.onnx with their parity cost; `cmnav bench runtime` times them.",
+        "MODEL.fp16.onnx / MODEL.int8.onnx with their parity cost against the fp32 graph: int8 quantises the "
+        "convolutions only (the policy head stays fp32), calibrated on the first half of the --recorded flights, and is "
+        "written only if its max action error over >= 300 steps of the other half (GRU state carried) is <= 0.02, else "
+        "refused with the numbers (exit 2, the fp32 model is kept).  `cmnav bench runtime` times the variants.",
     )
     export.add_argument("--encoder", metavar="CKPT", help="CMWAE checkpoint directory (cmnav train cmwae), e.g. models/cmwae-s2")
     export.add_argument("--policy", metavar="CKPT", help="policy checkpoint directory (cmnav train policy)")
     export.add_argument("-o", "--output", dest="model_out", metavar="MODEL.onnx", help="path of the ONNX file to write")
-    export.add_argument("--recorded", metavar="LOG.mcap", help="flight log (MCAP, cmnav fly/sitl) whose frames and states join the parity "
-                        "check and calibrate int8")  # fmt: skip
+    export.add_argument("--recorded", metavar="LOG.mcap", nargs="+", action="extend",
+                        help="flight logs (MCAP, cmnav fly/sitl): the first one's frames and states join the parity check; "
+                        "the first half of them calibrate int8, the rest judge the variants")  # fmt: skip
     export.add_argument("--variants", default="", metavar="fp16,int8", help="comma-separated: fp16 (for GPU providers), int8 (static QDQ)")
     export.add_argument("--json", action="store_true", help="also print the export report as one JSON line")
     export.set_defaults(func=_cmd_export_policy)
@@ -493,14 +503,17 @@ def build_parser() -> argparse.ArgumentParser:
         "SITL grab->command; ratios against the targets",
         description="In one run: p50/p99 of preprocessing, the ONNX step with 1 and 2 intra-op threads (and its "
         "fp16/int8 variants found next to the model), the same networks in torch eager (with --encoder/--policy), "
-        "and grab->command in one short SITL flight; the model's FLOPs, this CPU's theoretical FP32 peak and its "
+        "and grab->command in one short SITL flight per CPU model (fp32 and int8), the runtime pinned to a core of its "
+        "own with 1 intra-op thread and the SITL vehicle on the other cores, with the overhead split by stage; the model's FLOPs, this CPU's theoretical FP32 peak and its "
         "achieved GEMM rate; and the ratios against the targets (ONNX <= 0.65x eager, <= 1.3x ideal, overhead "
         "<= 3 ms p99, end to end <= 25 ms p99) with PASS/MISS.",
     )
     bench_runtime.add_argument("--model", required=True, help="ONNX model with the runtime's contract (cmnav export)")
     bench_runtime.add_argument("--encoder", help="the CMWAE checkpoint the model was exported from (for the torch eager rows)")
     bench_runtime.add_argument("--policy", help="the policy checkpoint the model was exported from (for the torch eager rows)")
-    bench_runtime.add_argument("--no-sitl", action="store_true", help="skip the SITL flight (no end-to-end rows)")
+    bench_runtime.add_argument("--no-sitl", action="store_true", help="skip the SITL flights (no end-to-end rows)")
+    bench_runtime.add_argument("--no-pin", action="store_true", help="SITL: do not pin the runtime to a core of its own "
+                               "(default: runtime on the last CPU with 1 intra-op thread, the SITL vehicle on the others)")  # fmt: skip
     bench_runtime.add_argument("--no-variants", action="store_true", help="do not time MODEL.fp16.onnx / MODEL.int8.onnx")
     bench_runtime.add_argument("--level", type=int, default=0, help="SITL curriculum level (default 0)")
     bench_runtime.add_argument("--seed", type=int, default=0, help="SITL world seed (default 0)")

@@ -12,6 +12,7 @@ documents every key.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -148,18 +149,70 @@ class VehicleConfig:
             _positive(f"vehicle.{key}", getattr(self, key))
 
 
+# The exported model's variants (``cmnav export --variants``): fp32 is the file ``model_path``
+# names; the others sit next to it as ``<stem>.<variant>.onnx`` (:func:`variant_path`).
+MODEL_VARIANTS = ("fp32", "fp16", "int8")
+
+
+def variant_path(path: str | Path, variant: str) -> Path:
+    """Where ``variant`` of the model ``path`` is: ``model.onnx`` -> ``model.int8.onnx`` (fp32: ``path``)."""
+    path = Path(path)
+    if variant == "fp32":
+        return path
+    return path.with_name(f"{path.stem}.{variant}{path.suffix or '.onnx'}")
+
+
+@dataclass(frozen=True)
+class TensorRtConfig:
+    """The TensorRT execution provider (Jetson): used when ``policy.providers`` names it.
+
+    TensorRT builds an engine for the model at the first step (minutes on a Jetson), so the
+    runtime warms the model up before it tells systemd READY, and keeps the engine in
+    ``engine_cache_dir`` so that later starts load it in seconds.  The directory must be writable
+    by the service (``ReadWritePaths=`` / ``StateDirectory=``, systemd/README.md)."""
+
+    fp16: bool = True  # let TensorRT run layers in fp16 (the model file stays fp32)
+    engine_cache_dir: Path = Path("/var/lib/cmnav/trt-engines")
+    max_workspace_mb: int = 1024  # TensorRT builder workspace
+
+    def __post_init__(self) -> None:
+        _require(
+            isinstance(self.max_workspace_mb, int) and 64 <= self.max_workspace_mb <= 65536,
+            "policy.tensorrt.max_workspace_mb",
+            self.max_workspace_mb,
+            "an integer in [64, 65536] MB",
+        )
+
+
 @dataclass(frozen=True)
 class PolicyConfig:
     """The ONNX model, where it runs, and the deployment's action limits."""
 
     model_path: Path = Path("model.onnx")
     model_sha256: str | None = None  # when set, the model file must have this SHA-256 (hex)
+    # Which export of the model flies: "fp32" (model_path itself), "fp16" or "int8" (the file next
+    # to it, model.int8.onnx); its metadata must name the same variant.
+    variant: str = "fp32"
     providers: tuple[str, ...] = ("CPUExecutionProvider",)  # in order of preference
     provider_fallback: bool = False  # drop unavailable providers (logged) instead of refusing to start
     intra_op_threads: int = 0  # 0 = ONNX Runtime's default
+    warmup_steps: int = 3  # steps run on blank inputs at load, before READY (a TensorRT engine is built here)
+    tensorrt: TensorRtConfig = field(default_factory=TensorRtConfig)
     limits: ActionLimits = field(default_factory=ActionLimits)
 
+    @property
+    def model_file(self) -> Path:
+        """The file that flies: ``model_path`` or its ``variant`` next to it."""
+        return variant_path(self.model_path, self.variant)
+
     def __post_init__(self) -> None:
+        _require(self.variant in MODEL_VARIANTS, "policy.variant", self.variant, f"one of {', '.join(MODEL_VARIANTS)}")
+        _require(
+            isinstance(self.warmup_steps, int) and 0 <= self.warmup_steps <= 100,
+            "policy.warmup_steps",
+            self.warmup_steps,
+            "an integer in [0, 100]",
+        )
         _require(len(self.providers) > 0, "policy.providers", self.providers, "a non-empty list of execution providers")
         _require(
             self.model_sha256 is None
@@ -284,6 +337,35 @@ class MissionConfig:
 
 
 @dataclass(frozen=True)
+class ProcessConfig:
+    """The runtime process on its computer (TOML table ``[runtime]``).
+
+    ``cpu_affinity``: the CPU ids the whole process (every thread: event loop, ONNX Runtime's
+    step, MAVSDK, the camera driver) is pinned to at start, before the model loads; empty = no
+    pinning.  Each must be one of the CPUs this process may run on (``os.sched_getaffinity``;
+    under systemd, what ``CPUAffinity=`` left it).  Pin the runtime to a core nothing else is
+    given, with ``policy.intra_op_threads = 1`` (one core, one thread)."""
+
+    cpu_affinity: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        allowed = sorted(os.sched_getaffinity(0))
+        ids = self.cpu_affinity
+        _require(
+            all(isinstance(i, int) and not isinstance(i, bool) for i in ids) and len(set(ids)) == len(ids),
+            "runtime.cpu_affinity",
+            list(ids),
+            "a list of distinct integer CPU ids",
+        )
+        _require(
+            all(i in allowed for i in ids),
+            "runtime.cpu_affinity",
+            list(ids),
+            f"CPU ids this process may run on: {allowed} (os.sched_getaffinity; systemd's CPUAffinity= narrows it)",
+        )
+
+
+@dataclass(frozen=True)
 class SystemdConfig:
     """Talking to systemd (``Type=notify``): READY, STATUS lines and WATCHDOG pings on
     ``$NOTIFY_SOCKET``; nothing is sent when systemd did not set it."""
@@ -302,8 +384,16 @@ class RuntimeConfig:
     camera: CameraConfig = field(default_factory=CameraConfig)
     mission: MissionConfig = field(default_factory=MissionConfig)
     systemd: SystemdConfig = field(default_factory=SystemdConfig)
+    runtime: ProcessConfig = field(default_factory=ProcessConfig)
 
     def __post_init__(self) -> None:
+        pinned = self.runtime.cpu_affinity
+        _require(
+            not pinned or self.policy.intra_op_threads <= len(pinned),
+            "policy.intra_op_threads",
+            self.policy.intra_op_threads,
+            f"<= the {len(pinned)} CPU(s) of runtime.cpu_affinity (more threads than pinned cores only take turns; 1 on one core)",
+        )
         goal = self.mission.goal_rel_home_enu_m
         if goal is None:
             return

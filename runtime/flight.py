@@ -44,7 +44,7 @@ from .contract import (
 )
 from .contract.constants import GOAL_REACHED_RADIUS_M
 from .model import PolicyModel
-from .policy_step import PolicyMemory, compute_step
+from .policy_step import PolicyMemory, StepResult, compute_step
 from .recorder import Recorder
 from .slots import LatestSlot
 from .timing import StageTimes
@@ -334,13 +334,13 @@ class FlightLoop:
                 t_start + int(self.config.watchdog.step_trip_ms * _NS_PER_MS), now,
             )  # fmt: skip
             return False
-        self.watchdog.note_depth(frame.t_capture_ns, invalid_depth_fraction(frame.depth_m))
-        if self.recorder is not None:
-            self.recorder.log_step(frame, result)
-        if await self.watchdog.check_action(result.output.action, t_start, time.monotonic_ns()) is not None:
+        t_resumed = time.monotonic_ns()
+        if await self.watchdog.check_action(result.output.action, t_start, t_resumed) is not None:
+            self._after_command(frame, result)
             return False
         cmd_flu = action_to_velocity_flu(result.action_clipped, self.config.policy.limits)
         cmd = velocity_flu_to_mavsdk(cmd_flu)
+        t_checked = time.monotonic_ns()
         try:
             sent = await self.gate.send_policy(cmd)
         except VehicleError as err:
@@ -350,12 +350,18 @@ class FlightLoop:
         t_cmd = time.monotonic_ns()
         if sent:
             self.watchdog.note_command(t_cmd, cmd_flu)
+        self._after_command(frame, result)
         self._memory.advance(result)
         stages_ms = {
-            "preprocess": (result.t_preprocessed_ns - t_start) / _NS_PER_MS,
+            "frame_wait": (t_start - frame.t_capture_ns) / _NS_PER_MS,  # the frame's age when the step began
+            "executor_in": (result.t_started_ns - t_start) / _NS_PER_MS,  # telemetry snapshot + hop to the worker thread
+            "preprocess": (result.t_preprocessed_ns - result.t_started_ns) / _NS_PER_MS,
             "observation": (result.t_observed_ns - result.t_preprocessed_ns) / _NS_PER_MS,
             "inference": (result.t_inferred_ns - result.t_observed_ns) / _NS_PER_MS,
-            "command": (t_cmd - result.t_inferred_ns) / _NS_PER_MS,
+            "executor_out": (t_resumed - result.t_inferred_ns) / _NS_PER_MS,  # back to the event loop (asyncio scheduling)
+            "checks": (t_checked - t_resumed) / _NS_PER_MS,  # NaN/Inf check, action -> velocity
+            "send": (t_cmd - t_checked) / _NS_PER_MS,  # the MAVSDK call, its executor hop included
+            "command": (t_cmd - result.t_inferred_ns) / _NS_PER_MS,  # executor_out + checks + send
             "step": (t_cmd - t_start) / _NS_PER_MS,
             "frame_age": (t_cmd - frame.t_capture_ns) / _NS_PER_MS,
         }
@@ -370,6 +376,13 @@ class FlightLoop:
             self.on_alive()
         episode.last_distance_m = float(np.linalg.norm(self._goal_enu_m - inputs.pos_enu_m))
         return episode.last_distance_m < GOAL_REACHED_RADIUS_M
+
+    def _after_command(self, frame: Frame, result: StepResult) -> None:
+        """Off the command's path (issue 15): the step's record and the depth statistics, once the
+        command went out (or the step was refused)."""
+        if self.recorder is not None:
+            self.recorder.log_step(frame, result)
+        self.watchdog.note_depth(frame.t_capture_ns, invalid_depth_fraction(frame.depth_m))
 
     async def _sleep_alive(self, duration_s: float) -> None:
         """Sleep ``duration_s`` (hovering before Hold) while still reporting the loop alive."""

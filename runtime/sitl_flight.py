@@ -37,8 +37,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .affinity import pin_process
 from .camera.sim_source import SimCameraSource
-from .config import PolicyConfig, RecorderConfig, RuntimeConfig, VehicleConfig
+from .config import PolicyConfig, ProcessConfig, RecorderConfig, RuntimeConfig, VehicleConfig
 from .contract import HOVER, ContractMismatchError
 from .fault_injection import FaultyPolicy, shrink_geofence, shrink_geofence_at
 from .faults import FaultKind, FaultSite, Injection, InjectionError, parse_injection
@@ -82,6 +83,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--log-dir", type=Path, required=True, help=f"directory for the MCAP log ({LOG_NAME})")
     parser.add_argument("--summary", type=Path, required=True, help="where to write the summary JSON")
     parser.add_argument("--providers", default="CPUExecutionProvider", help="ONNX Runtime execution providers, comma-separated")
+    parser.add_argument("--cpu-affinity", default="", metavar="CPU,...",
+                        help="pin this process to these CPU ids (runtime.cpu_affinity of cmnav fly); default: no pinning")
+    parser.add_argument("--intra-op-threads", type=int, default=0, help="ONNX Runtime intra-op threads (0 = its default)")
     parser.add_argument("--inject", action="append", default=[], metavar="KIND@SECONDS",
                         help="fault injection for tests (repeatable): inference-overrun, nan-action or geofence, "
                         "SECONDS after offboard start")  # fmt: skip
@@ -102,16 +106,24 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error(f"--takeoff-alt-m {args.takeoff_alt_m}: expected a height in (0, 50) m above home")
     if args.timeout_s <= 0.0:
         parser.error(f"--timeout-s {args.timeout_s}: expected a positive number of seconds")
+    try:
+        args.process = ProcessConfig(cpu_affinity=tuple(int(v) for v in args.cpu_affinity.split(",") if v.strip()))
+        args.policy = PolicyConfig(model_path=args.model, providers=tuple(args.providers.split(",")), intra_op_threads=args.intra_op_threads)
+    except ValueError as err:  # ConfigError names the key
+        parser.error(f"--cpu-affinity {args.cpu_affinity!r} / --intra-op-threads {args.intra_op_threads}: {err}")
     return args
 
 
 async def fly_episode(args: argparse.Namespace, summary: dict) -> EpisodeResult:
     """Everything between process start and disarm; fills ``summary`` as it goes."""
     config = RuntimeConfig(
-        policy=PolicyConfig(model_path=args.model, providers=tuple(args.providers.split(","))),
+        policy=args.policy,
         vehicle=VehicleConfig(url=f"udpin://127.0.0.1:{args.mavlink_port}"),
         recorder=RecorderConfig(log_dir=args.log_dir),
+        runtime=args.process,
     )
+    if config.runtime.cpu_affinity:  # before ONNX Runtime's and MAVSDK's threads exist
+        summary["cpu_affinity"] = list(pin_process(config.runtime.cpu_affinity))
     try:
         model = PolicyModel(config.policy.model_path, config.policy.providers, config.policy.intra_op_threads)
     except (ModelLoadError, ContractMismatchError) as err:

@@ -299,7 +299,19 @@ class Vehicle:
         MAVSDK sends it at once and then re-sends the last one at 20 Hz by itself.
         """
         setpoint = MavsdkVelocityBodyYawspeed(cmd.forward_m_s, cmd.right_m_s, cmd.down_m_s, cmd.yawspeed_deg_s)
-        await self._command("set_velocity_body", self._require(self._offboard).set_velocity_body(setpoint))
+        offboard = self._require(self._offboard)
+        blocking = getattr(offboard, "_plugin", None)  # MAVSDK 4's synchronous plugin behind the asyncio wrapper
+        if blocking is None:
+            await self._command("set_velocity_body", offboard.set_velocity_body(setpoint))
+        else:
+            # Called on the event loop, not through the wrapper's hop to the default executor and
+            # back: the C call only stores the setpoint and sends it (no answer is awaited, a
+            # fraction of a millisecond), while the two thread hops cost more than that and queue
+            # behind other work under load (issue 15, the step's "send" stage).
+            try:
+                blocking.set_velocity_body(setpoint)
+            except MavsdkError as err:
+                raise self._refused("set_velocity_body", err) from err
         self.setpoints_sent += 1
 
     async def _command(self, what: str, awaitable: Awaitable[T]) -> T:
@@ -310,8 +322,11 @@ class Vehicle:
                 f"{what}: no answer from the autopilot within {self.config.command_timeout_s} s: is the link up?"
             ) from err
         except MavsdkError as err:
-            raise VehicleCommandError(f"{what} refused: {err} (mode {self.state().flight_mode}, "
-                                      f"armed {self.state().armed}); check the autopilot's messages") from err  # fmt: skip
+            raise self._refused(what, err) from err
+
+    def _refused(self, what: str, err: MavsdkError) -> VehicleCommandError:
+        return VehicleCommandError(f"{what} refused: {err} (mode {self.state().flight_mode}, "
+                                   f"armed {self.state().armed}); check the autopilot's messages")  # fmt: skip
 
     @staticmethod
     def _require(plugin: T | None) -> T:

@@ -64,6 +64,11 @@ class SitlRequest:
     out_dir: Path
     injections: tuple[Injection, ...] = ()
     degrade: str = "none"
+    # Pinning (cmnav bench runtime): the runtime process pins itself (runtime.cpu_affinity) and
+    # runs ONNX Runtime with runtime_threads intra-op threads; the vehicle is started pinned.
+    runtime_cpus: tuple[int, ...] = ()
+    vehicle_cpus: tuple[int, ...] = ()
+    runtime_threads: int = 0
 
     def injections_at(self, site: FaultSite) -> list[str]:
         """``--inject`` arguments for the process at ``site``."""
@@ -151,6 +156,8 @@ def run_sitl(request: SitlRequest) -> dict:
              "--episode-json", str(episode_path), "--trace", str(trace_path), "--status-json", str(status_path),
              *request.injections_at(FaultSite.VEHICLE)],
             stdout=sim_out, stderr=subprocess.STDOUT, env=env,
+            # In the child before exec: every thread the vehicle starts inherits the set.
+            preexec_fn=(lambda: os.sched_setaffinity(0, request.vehicle_cpus)) if request.vehicle_cpus else None,
         )  # fmt: skip
     runtime = None
     try:
@@ -163,7 +170,8 @@ def run_sitl(request: SitlRequest) -> dict:
                  "--camera-port", str(camera_port), "--model", str(request.model_path),
                  "--goal-rel-home", ",".join(f"{v:.4f}" for v in episode["goal_rel_home_enu_m"]),
                  "--takeoff-alt-m", f"{episode['takeoff_alt_m']:.3f}", "--timeout-s", str(request.timeout_s),
-                 "--log-dir", str(run_dir), "--summary", str(summary_path), *request.injections_at(FaultSite.RUNTIME)],
+                 "--log-dir", str(run_dir), "--summary", str(summary_path), *request.injections_at(FaultSite.RUNTIME),
+                 "--cpu-affinity", ",".join(map(str, request.runtime_cpus)), "--intra-op-threads", str(request.runtime_threads)],
                 stdout=runtime_out, stderr=subprocess.STDOUT, env=env,
             )  # fmt: skip
         log.info("runtime started (pid %d); flying", runtime.pid)
@@ -286,6 +294,9 @@ def merge_summary(
     if collision:
         summary["collision"] = collision
         summary["crash_detect_ms"] = crash_detect_ms
+    if request.runtime_cpus or request.vehicle_cpus:
+        summary["pinning"] = {"runtime_cpus": flight.get("cpu_affinity"), "vehicle_cpus": list(request.vehicle_cpus),
+                              "runtime_intra_op_threads": request.runtime_threads}  # fmt: skip
     if request.injections:
         summary["faults"] = fault_records(request.injections, trace, flight, t_kill_s)
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))

@@ -85,23 +85,58 @@ def _cmd_train_cmwae(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_train_policy(args: argparse.Namespace) -> int:
+def _policy_train_config(args: argparse.Namespace, encoder_dir: str | None, corruption: str):
     from training.policy.env import CurriculumConfig
     from training.policy.network import POLICY_SIZES
     from training.policy.ppo import PpoConfig
-    from training.policy.train import PolicyTrainConfig, train_policy
+    from training.policy.train import PolicyTrainConfig
 
-    config = PolicyTrainConfig(
-        encoder_dir=args.encoder, out_dir=args.out, env_steps=args.steps, num_envs=args.envs, device=args.device,
-        seed=args.seed, corruption=args.corruption, policy=POLICY_SIZES[args.size],
+    return PolicyTrainConfig(
+        encoder_dir=encoder_dir, out_dir=args.out, env_steps=args.steps, num_envs=args.envs, device=args.device,
+        seed=args.seed, corruption=corruption, policy=POLICY_SIZES[args.size],
         ppo=PpoConfig(rollout_steps=args.rollout, minibatches=args.minibatches, lr=args.lr),
         curriculum=CurriculumConfig(start_level=args.start_level, max_level=args.max_level,
                                     window_episodes=args.curriculum_window),
         checkpoint_every=args.checkpoint_every, resume=args.resume, init_from=args.init_from,
         max_wall_s=None if args.minutes is None else args.minutes * 60.0, **_given(args, "precision"),
     )  # fmt: skip
-    out = train_policy(config)
+
+
+def _cmd_train_policy(args: argparse.Namespace) -> int:
+    if args.teacher is not None:
+        return _train_student(args)
+    from training.policy.train import train_policy
+
+    out = train_policy(_policy_train_config(args, args.encoder, args.corruption))
     print(f"checkpoint in {out}")
+    return 0
+
+
+def _train_student(args: argparse.Namespace) -> int:
+    from training.policy.dagger import DaggerConfig, train_dagger
+    from training.policy.network import POLICY_SIZES
+
+    if args.init_from is not None:
+        print("cmnav train policy: --init-from is for PPO fine-tuning, not with --teacher", file=sys.stderr)
+        return 2
+    config = DaggerConfig(
+        teacher_dir=args.teacher, encoder_dir=args.encoder, out_dir=args.out, env_steps=args.steps, num_envs=args.envs,
+        device=args.device, seed=args.seed, corruption=args.corruption, policy=POLICY_SIZES[args.size],
+        rollout_steps=args.rollout, minibatches=args.minibatches, max_level=args.max_level,
+        checkpoint_every=args.checkpoint_every, resume=args.resume,
+        max_wall_s=None if args.minutes is None else args.minutes * 60.0,
+        **_given(args, "precision", "beta_decay_env_steps", "projector_off_episode_fraction"),
+    )  # fmt: skip
+    out = train_dagger(config)
+    print(f"student checkpoint in {out}")
+    return 0
+
+
+def _cmd_train_teacher(args: argparse.Namespace) -> int:
+    from training.policy.train import train_policy
+
+    out = train_policy(_policy_train_config(args, None, "none"))
+    print(f"teacher checkpoint in {out}")
     return 0
 
 
@@ -341,6 +376,23 @@ def build_parser() -> argparse.ArgumentParser:
     add_precision(cmwae)
     cmwae.set_defaults(func=_cmd_train_cmwae)
 
+    def add_ppo_options(command: argparse.ArgumentParser, envs: int) -> None:
+        command.add_argument("--out", required=True, help="checkpoint directory (model.json + fp16 shards + train state)")
+        command.add_argument("--steps", type=int, default=1_000_000, help="env steps in total (default 1e6)")
+        command.add_argument("--minutes", type=float, help="stop (with a checkpoint) after this wall-clock time")
+        command.add_argument("--envs", type=int, default=envs, help=f"envs per process (default {envs})")
+        command.add_argument("--device", default="cpu", help="cpu or cuda")
+        command.add_argument("--seed", type=int, default=0)
+        command.add_argument("--size", choices=["paper", "tiny"], default="paper", help="policy width (paper: FC 256-128-64, GRU 64)")
+        command.add_argument("--rollout", type=int, default=32, help="steps per PPO rollout (default 32)")
+        command.add_argument("--minibatches", type=int, default=4, help="PPO minibatches per epoch, split over envs")
+        command.add_argument("--lr", type=float, default=3e-4)
+        command.add_argument("--start-level", type=int, default=0, help="curriculum start level (obstacles)")
+        command.add_argument("--max-level", type=int, default=20, help="curriculum cap")
+        command.add_argument("--curriculum-window", type=int, default=256, help="episodes per curriculum decision")
+        command.add_argument("--checkpoint-every", type=int, default=20, help="PPO iterations between checkpoints")
+        command.add_argument("--resume", action="store_true", help="continue from the train state in --out")
+
     policy = train_sub.add_parser(
         "policy",
         help="train the navigation policy (recurrent PPO) on the batched sim with a frozen encoder",
@@ -350,28 +402,34 @@ def build_parser() -> argparse.ArgumentParser:
         "`torchrun --nproc_per_node=N -m cmnav train policy ... --device cuda`.",
     )
     policy.add_argument("--encoder", required=True, help="encoder checkpoint directory (cmnav train cmwae)")
-    policy.add_argument("--out", required=True, help="checkpoint directory (model.json + fp16 shards + train state)")
-    policy.add_argument("--steps", type=int, default=1_000_000, help="env steps in total (default 1e6)")
-    policy.add_argument("--minutes", type=float, help="stop (with a checkpoint) after this wall-clock time")
-    policy.add_argument("--envs", type=int, default=64, help="envs per process (default 64)")
-    policy.add_argument("--device", default="cpu", help="cpu or cuda")
-    policy.add_argument("--seed", type=int, default=0)
+    add_ppo_options(policy, envs=64)
     policy.add_argument("--corruption", choices=["train", "none"], default="train",
                         help="depth corruption during training (none: the depth-only baseline policy)")  # fmt: skip
-    policy.add_argument("--size", choices=["paper", "tiny"], default="paper", help="policy width (paper: FC 256-128-64, GRU 64)")
-    policy.add_argument("--rollout", type=int, default=32, help="steps per PPO rollout (default 32)")
-    policy.add_argument("--minibatches", type=int, default=4, help="PPO minibatches per epoch, split over envs")
-    policy.add_argument("--lr", type=float, default=3e-4)
-    policy.add_argument("--start-level", type=int, default=0, help="curriculum start level (obstacles)")
-    policy.add_argument("--max-level", type=int, default=20, help="curriculum cap")
-    policy.add_argument("--curriculum-window", type=int, default=256, help="episodes per curriculum decision")
-    policy.add_argument("--checkpoint-every", type=int, default=20, help="PPO iterations between checkpoints")
-    policy.add_argument("--resume", action="store_true", help="continue from the train state in --out")
     policy.add_argument("--init-from", metavar="POLICY_DIR",
                         help="start from this policy checkpoint (fine-tuning); when it was trained on another encoder, "
                         "its latent normalisation is re-estimated on --encoder")  # fmt: skip
+    policy.add_argument("--teacher", metavar="TEACHER_DIR",
+                        help="distil this privileged teacher (cmnav train teacher) by DAgger instead of PPO: the student "
+                        "flies a teacher/student mixture, the teacher labels every state it visits; the student's depth is "
+                        "corrupted (--corruption), the teacher's is clean")  # fmt: skip
+    policy.add_argument("--beta-decay-env-steps", type=int,
+                        help="DAgger: env steps over which the teacher's share of the actions falls from 1 to 0 (default 3e5)")
+    policy.add_argument("--projector-off-episode-fraction", type=float,
+                        help="DAgger: share of episodes whose depth is lost like a D455 without its projector (default 0.15)")
     add_precision(policy)
     policy.set_defaults(func=_cmd_train_policy)
+
+    teacher = train_sub.add_parser(
+        "teacher",
+        help="train the privileged teacher (recurrent PPO on state + low-resolution clean depth, no encoder)",
+        description="The teacher of the distilled policy (DESIGN §5): the same recurrent PPO, reward, curriculum "
+        "(to level 20), kicks, camera jitter and action contract as `train policy`, but it observes the 15 state "
+        "values and clean depth of the camera's field of view ray cast at 64x36 and min-pooled to 32x18, so no "
+        "224 image is rendered and no encoder runs.  It never flies: `cmnav train policy --teacher DIR` distils it.",
+    )
+    add_ppo_options(teacher, envs=1024)
+    teacher.add_argument("--init-from", metavar="TEACHER_DIR", help="start from this teacher checkpoint")
+    teacher.set_defaults(func=_cmd_train_teacher, precision=None)
 
     evaluate = sub.add_parser("eval", help="evaluate a trained encoder (Table I) or policy (Table II)")
     eval_sub = evaluate.add_subparsers(dest="what", required=True, metavar="WHAT")
@@ -413,7 +471,7 @@ def build_parser() -> argparse.ArgumentParser:
         "its projector).",
     )
     eval_policy.add_argument("--policy", required=True, help="policy checkpoint directory (cmnav train policy)")
-    eval_policy.add_argument("--encoder", required=True, help="the encoder checkpoint the policy was trained with")
+    eval_policy.add_argument("--encoder", help="the encoder checkpoint the policy was trained with (none for a teacher)")
     eval_policy.add_argument("--levels", type=int_list, default=[0, 5, 10, 15, 20], help="comma-separated (default 0,5,10,15,20)")
     eval_policy.add_argument("--conditions", type=name_list, default=["clean", "corrupted", "projector-off"],
                              help="comma-separated subset of clean,corrupted,projector-off (default all)")  # fmt: skip

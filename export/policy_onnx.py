@@ -134,6 +134,10 @@ def load_networks(encoder_dir: str | Path, policy_dir: str | Path) -> Networks:
     try:
         policy_fp = checkpoint_fingerprint(policy_dir)
         policy, policy_card = load_policy(policy_dir)
+        if policy.config.obs_dim != c.OBSERVATION_DIM:
+            raise ExportError(f"{policy_dir} observes {policy.config.obs_dim} values, not the contract's {c.OBSERVATION_DIM}: "
+                              f"it is a privileged teacher ({policy_card.get('meta', {}).get('role')}), which never flies; "
+                              f"export the student distilled from it (cmnav train policy --teacher {policy_dir} ...)")  # fmt: skip
         encoder_fp = check_trained_on(policy_card, policy_dir, encoder_dir)
         cmwae, encoder_card = load_cmwae(encoder_dir)
     except CheckpointError as err:

@@ -24,14 +24,17 @@ from dataclasses import asdict, dataclass, field, fields, replace
 
 import torch
 from torch import Tensor, nn
+from torch.nn import functional as F
 
 from runtime.contract.constants import (
     CONTROL_PERIOD_S,
+    DEPTH_MAX_M,
     EPISODE_DURATION_S,
     GOAL_REACHED_RADIUS_M,
     IMAGE_SIZE_PX,
     LATENT_DIM,
     OBSERVATION_DIM,
+    STATE_DIM,
 )
 from sim.camera import CameraModel, MountJitter, camera_pose, sample_mount_jitter
 from sim.collision import DEFAULT_VEHICLE_RADIUS_M, collides
@@ -49,6 +52,7 @@ from .contract_torch import action_to_velocity_flu_batch, observation_state_batc
 RUNNING, SUCCESS, CRASH, TIMEOUT = 0, 1, 2, 3
 OUTCOMES = {SUCCESS: "success", CRASH: "crash", TIMEOUT: "timeout"}
 CORRUPTION_MODES = ("none", "train", "episode", "projector-off")
+LEVEL_SAMPLING = ("curriculum", "uniform")
 
 
 @dataclass(frozen=True)
@@ -111,6 +115,11 @@ class NavEnvConfig:
     corruption: str = "train"
     corrupted_env_fraction: float = 0.5
     corruption_scheme: PatchScheme = RL_TRAINING
+    # With any mode: this fraction of episodes see depth as a D455 without its projector instead.
+    projector_off_episode_fraction: float = 0.0
+    # curriculum: every new episode at the curriculum's level; uniform: each at a level drawn
+    # uniformly from [min_level, max_level] (distillation covers every level Table II tests).
+    level_sampling: str = "curriculum"
     # Disturbances: with this probability per env and control step, a kick: a random force
     # (|F| <= kick_force_max_n) for one control period and an attitude impulse (a rotation of at
     # most kick_angle_max_rad), standing in for force and torque kicks.
@@ -120,6 +129,11 @@ class NavEnvConfig:
     camera_jitter: bool = True  # mount error per episode: U(-5, 5) cm, U(-3, 3) deg
     start_yaw_range_rad: float = math.pi / 3  # initial heading: goal bearing + U(-range, range)
     vehicle_radius_m: float = DEFAULT_VEHICLE_RADIUS_M
+    # The teacher's privileged depth (DESIGN §5): clean depth of the same camera field of view,
+    # ray cast at privileged_render_px and min-pooled by privileged_pool (the nearest surface in
+    # each cell, so that a 0.1 m rod is not lost between rays), normalised like the contract's.
+    privileged_render_px: tuple[int, int] = (64, 36)  # width, height (the D455's 16:9)
+    privileged_pool: int = 2
     world: WorldConfig = WorldConfig()
     dynamics: DynamicsParams = DynamicsParams(ground_contact=False)
     reward: RewardConfig = RewardConfig()
@@ -129,15 +143,33 @@ class NavEnvConfig:
     def max_steps(self) -> int:
         return int(round(self.episode_duration_s / CONTROL_PERIOD_S))
 
+    @property
+    def privileged_depth_px(self) -> tuple[int, int]:
+        """(width, height) of the teacher's depth after pooling."""
+        width, height = self.privileged_render_px
+        return width // self.privileged_pool, height // self.privileged_pool
+
+    @property
+    def privileged_obs_dim(self) -> int:
+        width, height = self.privileged_depth_px
+        return STATE_DIM + width * height
+
     def validate(self) -> None:
         if self.num_envs < 1:
             raise ValueError(f"num_envs={self.num_envs} must be >= 1")
         if self.corruption not in CORRUPTION_MODES:
             raise ValueError(f"corruption={self.corruption!r} must be one of {CORRUPTION_MODES}")
-        if not 0.0 <= self.corrupted_env_fraction <= 1.0:
-            raise ValueError(f"corrupted_env_fraction={self.corrupted_env_fraction} must lie in [0, 1]")
+        for key in ("corrupted_env_fraction", "projector_off_episode_fraction"):
+            if not 0.0 <= getattr(self, key) <= 1.0:
+                raise ValueError(f"{key}={getattr(self, key)} must lie in [0, 1]")
+        if self.level_sampling not in LEVEL_SAMPLING:
+            raise ValueError(f"level_sampling={self.level_sampling!r} must be one of {LEVEL_SAMPLING}")
         if self.physics_substeps < 1:
             raise ValueError(f"physics_substeps={self.physics_substeps} must be >= 1")
+        width, height = self.privileged_render_px
+        if self.privileged_pool < 1 or width % self.privileged_pool or height % self.privileged_pool or min(width, height) < 4:
+            raise ValueError(f"privileged_render_px={self.privileged_render_px} must be >= 4 px and divisible by "
+                             f"privileged_pool={self.privileged_pool}")  # fmt: skip
         self.curriculum.validate()
         self.world.validate()
 
@@ -147,9 +179,11 @@ class NavEnvConfig:
 
 @dataclass
 class StepOutput:
-    """obs [N, 79] (after any auto-reset: the new episode's first observation), reward [N],
-    done [N] bool (the episode ended this step), outcome [N] int (RUNNING/SUCCESS/CRASH/TIMEOUT),
-    level [N] (the level of the episode that ran this step), reward_terms: batch means."""
+    """obs [N, D] (after any auto-reset: the new episode's first observation; D = 79, or the
+    privileged size for a teacher env), reward [N], done [N] bool (the episode ended this step),
+    outcome [N] int (RUNNING/SUCCESS/CRASH/TIMEOUT), level [N] (the level of the episode that
+    ran this step), reward_terms: batch means; teacher_obs [N, P]: the privileged observation of
+    the same states, where the env was asked for it (DAgger)."""
 
     obs: Tensor
     reward: Tensor
@@ -157,6 +191,7 @@ class StepOutput:
     outcome: Tensor
     level: Tensor
     reward_terms: dict[str, float] = field(default_factory=dict)
+    teacher_obs: Tensor | None = None
 
 
 def pad_world_slots(world: WorldBatch, num_slots: int) -> WorldBatch:
@@ -236,25 +271,33 @@ def env_encoder(encoder: nn.Module, precision: str, device: torch.device | str, 
 
 class NavEnv:
     """N navigation envs (see the module doc).  ``encoder`` maps (gray, depth) [N, 1, 224, 224]
-    to the latent [N, 64] and is frozen here.  ``fixed_level``: every episode at this level and
-    no curriculum (evaluation).  ``episode_seed_base``: episode seeds derive from it (env index,
-    episode count), so the same base gives the same rooms whatever policy flies them."""
+    to the latent [N, 64] and is frozen here; without one the env is the teacher's: its
+    observation is the 15 state values then the privileged low-resolution clean depth, and no
+    224 image is rendered.  ``teacher_obs``: also give the privileged observation of every state
+    (``StepOutput.teacher_obs``, :meth:`teacher_observation`) for DAgger.  ``fixed_level``:
+    every episode at this level and no curriculum (evaluation).  Episode seeds derive from
+    ``seed``, the env index and the episode count, so the same seed gives the same rooms
+    whatever policy flies them."""
 
     def __init__(
         self,
         config: NavEnvConfig,
-        encoder: nn.Module,
+        encoder: nn.Module | None,
         device: torch.device | str = "cpu",
         seed: int = 0,
         fixed_level: int | None = None,
         auto_reset: bool = True,
+        teacher_obs: bool = False,
     ) -> None:
         config.validate()
         self.config = config
         self.device = torch.device(device)
-        self.encoder = encoder.to(self.device).eval()
-        for p in self.encoder.parameters():
+        self.encoder = None if encoder is None else encoder.to(self.device).eval()
+        for p in self.encoder.parameters() if self.encoder is not None else ():
             p.requires_grad_(False)
+        self.with_teacher_obs = teacher_obs
+        width, height = config.privileged_render_px
+        self.privileged_camera = CameraModel(width_px=width, height_px=height)
         self.num_envs = config.num_envs
         self.seed = seed
         self.fixed_level = fixed_level
@@ -264,7 +307,7 @@ class NavEnv:
         self.dynamics = QuadrotorDynamics(config.dynamics)
         self.projector_off = ProjectorOffModel()
         self.generator = torch.Generator().manual_seed(seed)
-        self.stage_seconds = {"render": 0.0, "preprocess": 0.0, "encode": 0.0, "physics": 0.0}
+        self.stage_seconds = {"render": 0.0, "preprocess": 0.0, "encode": 0.0, "physics": 0.0, "privileged": 0.0}
         n = self.num_envs
         self._slots = max(1, config.curriculum.max_level if fixed_level is None else fixed_level)
         self.episode_index = torch.zeros(n, dtype=torch.long)
@@ -276,6 +319,7 @@ class NavEnv:
         self.prev_dist_m = torch.zeros(n, device=self.device)
         self.episode_level = torch.zeros(n, dtype=torch.long, device=self.device)
         self.episode_masks = torch.zeros(n, IMAGE_SIZE_PX, IMAGE_SIZE_PX, dtype=torch.bool)
+        self.projector_off_episode = torch.zeros(n, dtype=torch.bool)
         self.active = torch.ones(n, dtype=torch.bool, device=self.device)
 
     # ---- episodes -------------------------------------------------------------------------
@@ -295,9 +339,14 @@ class NavEnv:
     def _reset_envs(self, envs: Tensor) -> None:
         cfg = self.config
         envs = envs.cpu()
+        if cfg.level_sampling == "uniform" and self.fixed_level is None:
+            c = cfg.curriculum
+            levels = torch.randint(c.min_level, c.max_level + 1, (len(envs),), generator=self.generator).tolist()
+        else:
+            levels = [self.level] * len(envs)
         worlds = [
-            pad_world_slots(make_worlds([self.level], seed=self._episode_seed(int(i)), config=cfg.world), self._slots)
-            for i in envs
+            pad_world_slots(make_worlds([level], seed=self._episode_seed(int(i)), config=cfg.world), self._slots)
+            for i, level in zip(envs, levels)
         ]
         fresh = WorldBatch(**{f.name: torch.cat([getattr(w, f.name) for w in worlds]) for f in fields(WorldBatch)})
         fresh = fresh.to(self.device)
@@ -324,7 +373,9 @@ class NavEnv:
         self.step_count[dev_envs] = 0
         self.prev_action[dev_envs] = 0.0
         self.prev_dist_m[dev_envs] = torch.linalg.vector_norm(fresh.goal_m - fresh.start_m, dim=-1)
-        self.episode_level[dev_envs] = self.level
+        self.episode_level[dev_envs] = torch.tensor(levels, device=self.device)
+        if cfg.projector_off_episode_fraction > 0.0:
+            self.projector_off_episode[envs] = torch.rand(len(envs), generator=self.generator) < cfg.projector_off_episode_fraction
         if cfg.corruption == "episode":
             coverage = cfg.corruption_scheme.sample_coverage(len(envs), self.generator)
             self.episode_masks[envs] = patch_masks(coverage, cfg.corruption_scheme, self.generator)
@@ -348,10 +399,15 @@ class NavEnv:
         depth_m = out.depth_m
         if cfg.corruption == "projector-off":
             depth_m, _ = self.projector_off.apply(depth_m, out.gray_u8, self.camera.fx_px, self.generator)
+        elif bool(self.projector_off_episode.any()):
+            off = self.projector_off_episode.nonzero().squeeze(1).to(self.device)
+            depth_m = depth_m.clone()
+            depth_m[off], _ = self.projector_off.apply(depth_m[off], out.gray_u8[off], self.camera.fx_px, self.generator)
         gray = preprocess_gray_batch(out.gray_u8)
         depth = preprocess_depth_batch(depth_m)
         if cfg.corruption == "train":
-            chosen = (torch.rand(self.num_envs, generator=self.generator) < cfg.corrupted_env_fraction).nonzero().squeeze(1)
+            chosen = ((torch.rand(self.num_envs, generator=self.generator) < cfg.corrupted_env_fraction)
+                      & ~self.projector_off_episode).nonzero().squeeze(1)  # fmt: skip
             if len(chosen):
                 coverage = cfg.corruption_scheme.sample_coverage(len(chosen), self.generator)
                 masks = patch_masks(coverage, cfg.corruption_scheme, self.generator)
@@ -361,18 +417,39 @@ class NavEnv:
         self._timed("preprocess", t0)
         return gray.unsqueeze(1), depth.unsqueeze(1)
 
+    def privileged_depth(self) -> Tensor:
+        """[N, W*H] the teacher's clean depth at the current camera poses (see NavEnvConfig),
+        normalised by DEPTH_MAX_M to [0, 1] (nothing is invalid: the room is closed)."""
+        t0 = time.perf_counter()
+        cam_pos, cam_quat = camera_pose(self.state.pos_enu_m, self.state.quat_enu_flu, self.privileged_camera, self.jitter)
+        depth_m = render(self.world, cam_pos, cam_quat, self.privileged_camera).depth_m
+        depth = torch.nan_to_num(depth_m, nan=DEPTH_MAX_M, posinf=DEPTH_MAX_M)
+        depth = torch.where(depth <= 0.0, torch.full_like(depth, DEPTH_MAX_M), depth)
+        pool = self.config.privileged_pool
+        nearest = -F.max_pool2d(-depth.unsqueeze(1), pool).flatten(1)
+        self._timed("privileged", t0)
+        return (nearest * (1.0 / DEPTH_MAX_M)).clamp(0.0, 1.0)
+
+    def _state_observation(self) -> Tensor:
+        s = self.state
+        return observation_state_batch(
+            s.pos_enu_m, self.world.goal_m, s.quat_enu_flu, s.vel_enu_m_s, s.angvel_body_flu_rad_s, self.prev_action
+        )
+
+    def teacher_observation(self) -> Tensor:
+        """[N, 15 + W*H] the privileged observation of the current states."""
+        return torch.cat([self._state_observation(), self.privileged_depth()], dim=-1)
+
     def _observe(self) -> Tensor:
+        if self.encoder is None:
+            return self.teacher_observation()
         gray, depth = self.render_inputs()
         t0 = time.perf_counter()
         with torch.inference_mode():
             latent = self.encoder(gray, depth).float()
         self._timed("encode", t0)
         assert latent.shape == (self.num_envs, LATENT_DIM)
-        s = self.state
-        state = observation_state_batch(
-            s.pos_enu_m, self.world.goal_m, s.quat_enu_flu, s.vel_enu_m_s, s.angvel_body_flu_rad_s, self.prev_action
-        )
-        obs = torch.cat([state, latent.clone()], dim=-1)
+        obs = torch.cat([self._state_observation(), latent.clone()], dim=-1)
         assert obs.shape[-1] == OBSERVATION_DIM
         return obs
 
@@ -426,7 +503,8 @@ class NavEnv:
             else:
                 self.active &= ~done
         obs = self._observe()
-        return StepOutput(obs, reward, done, outcome, level, terms)
+        teacher_obs = self.teacher_observation() if self.with_teacher_obs else None
+        return StepOutput(obs, reward, done, outcome, level, terms, teacher_obs)
 
     def _sample_kicks(self) -> tuple[Tensor | None, Tensor | None]:
         cfg = self.config

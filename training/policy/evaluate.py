@@ -24,7 +24,7 @@ from ..cmwae.train import load_cmwae
 from ..fastpath import FrozenEncoder, check_action_parity
 from ..progress import Progress
 from .env import CRASH, OUTCOMES, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder, parity_frames
-from .network import check_trained_on, load_policy
+from .network import TEACHER, check_trained_on, load_policy
 
 log = logging.getLogger(__name__)
 CONDITIONS = {"clean": "none", "corrupted": "episode", "projector-off": "projector-off"}
@@ -33,7 +33,7 @@ CONDITIONS = {"clean": "none", "corrupted": "episode", "projector-off": "project
 @dataclass(frozen=True)
 class PolicyEvalConfig:
     policy_dir: str
-    encoder_dir: str
+    encoder_dir: str | None  # None for a privileged teacher (it has no encoder)
     levels: tuple[int, ...] = (0, 5, 10, 15, 20)
     conditions: tuple[str, ...] = ("clean", "corrupted", "projector-off")
     episodes: int = 100
@@ -104,15 +104,26 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
     config.validate()
     device = torch.device(config.device)
     policy, card = load_policy(config.policy_dir, device)
-    fingerprint = check_trained_on(card, config.policy_dir, config.encoder_dir)
-    cmwae, _ = load_cmwae(config.encoder_dir, device)
-    encoder = env_encoder(cmwae.encoder, config.precision, device, seed=config.seed)
-    action_parity = check_policy_parity(policy, cmwae.encoder, encoder, device, config.seed)
+    conditions = config.conditions
+    if card.get("meta", {}).get("role") == TEACHER:
+        if config.encoder_dir is not None:
+            raise ValueError(f"{config.policy_dir} is a privileged teacher (state + clean low-resolution depth, no "
+                             f"encoder): evaluate it without --encoder")  # fmt: skip
+        # It sees clean depth whatever the camera does: only the clean rows describe it.
+        conditions = tuple(c for c in conditions if c == "clean") or ("clean",)
+        fingerprint, encoder, action_parity = None, None, None
+    elif config.encoder_dir is None:
+        raise ValueError(f"{config.policy_dir} flies on an encoder's latent: pass --encoder (the checkpoint it was trained with)")
+    else:
+        fingerprint = check_trained_on(card, config.policy_dir, config.encoder_dir)
+        cmwae, _ = load_cmwae(config.encoder_dir, device)
+        encoder = env_encoder(cmwae.encoder, config.precision, device, seed=config.seed)
+        action_parity = check_policy_parity(policy, cmwae.encoder, encoder, device, config.seed)
     out = Path(config.out_dir or Path(config.policy_dir) / "eval")
     out.mkdir(parents=True, exist_ok=True)
     cells = []
-    progress = Progress(len(config.conditions) * len(config.levels) * config.episodes, "eval policy", unit="episodes")
-    for condition in config.conditions:
+    progress = Progress(len(conditions) * len(config.levels) * config.episodes, "eval policy", unit="episodes")
+    for condition in conditions:
         for level in config.levels:
             counts = {SUCCESS: 0, TIMEOUT: 0, CRASH: 0}
             for k, (code, path, world) in enumerate(
@@ -132,7 +143,8 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
             })  # fmt: skip
     progress.close()
     result = {
-        "policy": str(config.policy_dir), "encoder": str(config.encoder_dir), "encoder_fingerprint": fingerprint,
+        "policy": str(config.policy_dir), "role": card.get("meta", {}).get("role", "policy"),
+        "encoder": config.encoder_dir, "encoder_fingerprint": fingerprint,
         "fast_path": {"encoder": getattr(getattr(encoder, "path", None), "name", "fp32"), "bf16_action_error": action_parity},
         "policy_env_steps": card.get("step"), "config": asdict(replace(config, out_dir=str(out))), "cells": cells,
     }  # fmt: skip

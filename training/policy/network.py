@@ -17,15 +17,24 @@ import torch
 import torch.distributed as dist
 from torch import Tensor, nn
 
-from runtime.contract.constants import ACTION_DIM, OBSERVATION_DIM
+from runtime.contract.constants import ACTION_DIM, OBSERVATION_DIM, STATE_DIM
 
 log = logging.getLogger(__name__)
 
 CHECKPOINT_KIND = "policy"
+TEACHER, STUDENT = "teacher", "policy"  # a card's meta["role"]: the privileged teacher, or the deployed policy
+
+
+def policy_role(encoder_fingerprint: str | None) -> str:
+    """A policy without an encoder is the privileged teacher; with one, the deployable policy."""
+    return TEACHER if encoder_fingerprint is None else STUDENT
 
 
 @dataclass(frozen=True)
 class PolicyConfig:
+    # 79 for the deployed policy (the contract's observation); a teacher's is larger (its
+    # privileged depth): it never ships, export refuses it.
+    obs_dim: int = OBSERVATION_DIM
     mlp_sizes: tuple[int, ...] = (256, 128, 64)
     gru_size: int = 64
     init_log_std: float = -0.5
@@ -38,6 +47,8 @@ class PolicyConfig:
             raise ValueError(f"PolicyConfig.mlp_sizes={self.mlp_sizes} must be positive widths")
         if self.gru_size <= 0:
             raise ValueError(f"PolicyConfig.gru_size={self.gru_size} must be > 0")
+        if self.obs_dim < STATE_DIM:
+            raise ValueError(f"PolicyConfig.obs_dim={self.obs_dim} must hold at least the {STATE_DIM} state values")
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -100,9 +111,9 @@ class ActorCritic(nn.Module):
         super().__init__()
         config.validate()
         self.config = config
-        self.obs_norm = RunningNorm(OBSERVATION_DIM, max_count=config.obs_norm_max_count)
+        self.obs_norm = RunningNorm(config.obs_dim, max_count=config.obs_norm_max_count)
         layers: list[nn.Module] = []
-        width = OBSERVATION_DIM
+        width = config.obs_dim
         for size in config.mlp_sizes:
             layers += [nn.Linear(width, size), nn.ELU()]
             width = size

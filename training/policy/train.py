@@ -20,7 +20,7 @@ from ..distributed import DistInfo, all_reduce_mean, log_weights_digest, run_dis
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .env import CRASH, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder
-from .network import CHECKPOINT_KIND, ActorCritic, PolicyConfig, load_policy
+from .network import CHECKPOINT_KIND, ActorCritic, PolicyConfig, load_policy, policy_role
 from .ppo import PpoConfig, ReturnNormalizer, Rollout, ppo_update
 
 log = logging.getLogger(__name__)
@@ -28,7 +28,7 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class PolicyTrainConfig:
-    encoder_dir: str
+    encoder_dir: str | None  # None: the privileged teacher (state + low-resolution clean depth, no encoder)
     out_dir: str
     env_steps: int = 1_000_000  # total over all processes
     num_envs: int = 64  # per process
@@ -80,11 +80,17 @@ def _reduce_grads(model: ActorCritic, info: DistInfo):
 def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> Path:
     out = Path(config.out_dir)
     torch.manual_seed(config.seed + info.rank)
-    cmwae, encoder_card = load_cmwae(config.encoder_dir, device)
-    encoder_fingerprint = checkpoint_fingerprint(config.encoder_dir)
-    encoder = env_encoder(cmwae.encoder, config.precision, device, seed=config.seed)
+    if config.encoder_dir is None:  # the teacher: its observation is privileged, there is no encoder
+        encoder, encoder_card, encoder_fingerprint = None, {}, None
+        policy_config = replace(config.policy, obs_dim=config.env_config().privileged_obs_dim)
+    else:
+        cmwae, encoder_card = load_cmwae(config.encoder_dir, device)
+        encoder_fingerprint = checkpoint_fingerprint(config.encoder_dir)
+        encoder = env_encoder(cmwae.encoder, config.precision, device, seed=config.seed)
+        policy_config = config.policy
+    role = policy_role(encoder_fingerprint)
     env = NavEnv(config.env_config(), encoder, device, seed=config.seed * 1000 + info.rank)
-    model = ActorCritic(config.policy).to(device)
+    model = ActorCritic(policy_config).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.ppo.lr)
     normalizer = ReturnNormalizer(config.num_envs, config.ppo.gamma, device)
     update_generator = torch.Generator().manual_seed(config.seed * 1000 + info.rank + 1)
@@ -118,11 +124,12 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
     steps_per_iteration = config.ppo.rollout_steps * config.num_envs * info.world_size
     total_iterations = -(-config.env_steps // steps_per_iteration)
     writer = ScalarWriter(out / "tensorboard") if info.is_main else None
-    progress = Progress(total_iterations * steps_per_iteration, "train policy", unit="env-steps",
+    progress = Progress(total_iterations * steps_per_iteration, f"train {role}", unit="env-steps",
                         initial=env_steps) if info.is_main else None  # fmt: skip
     meta = {
         "train": {k: v for k, v in asdict(config).items() if k not in ("policy",)},
-        "encoder": str(config.encoder_dir),
+        "role": role,
+        "encoder": None if config.encoder_dir is None else str(config.encoder_dir),
         "encoder_fingerprint": encoder_fingerprint,
         "encoder_step": encoder_card.get("step"),
         "encoder_scheme": encoder_card.get("meta", {}).get("train", {}).get("scheme"),
@@ -135,7 +142,7 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
     def checkpoint() -> None:
         if not info.is_main:
             return
-        save_weights(out, model, CHECKPOINT_KIND, config.policy.to_json(), env_steps,
+        save_weights(out, model, CHECKPOINT_KIND, policy_config.to_json(), env_steps,
                      {**meta, "env_steps": env_steps, "iteration": iteration, "curriculum_level": env.curriculum.level})  # fmt: skip
         save_train_state(out, {
             "model": model.state_dict(), "optimizer": optimizer.state_dict(), "iteration": iteration,

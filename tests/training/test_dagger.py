@@ -1,0 +1,173 @@
+"""The privileged teacher (low-resolution env, PPO) and the DAgger student: labels come from the
+teacher on the student's own states, corruption reaches the student's input and never the
+teacher's, and the student exports to a model the runtime loads."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from dataclasses import asdict
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from export.policy_onnx import PARITY_TOLERANCE, ExportError, export_policy, load_networks, random_inputs, torch_outputs
+from runtime.contract import constants as c
+from runtime.contract.constants import STATE_DIM
+from runtime.model import PolicyModel
+from training.checkpoint import save_weights
+from training.cmwae.model import Cmwae, make_config
+from training.policy.dagger import DaggerConfig, collect, distill, load_teacher
+from training.policy.env import CurriculumConfig, NavEnv, NavEnvConfig
+from training.policy.network import ActorCritic, PolicyConfig
+
+pytestmark = pytest.mark.timeout(300)
+TEACHER = ["train", "teacher", "--size", "tiny", "--envs", "16", "--rollout", "8", "--minibatches", "2",
+           "--checkpoint-every", "2", "--curriculum-window", "4", "--max-level", "3"]  # fmt: skip
+
+
+def _cmnav(*args):
+    proc = subprocess.run([sys.executable, "-m", "cmnav", *args], capture_output=True, text=True, timeout=280)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc.stdout, proc.stderr
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A tiny teacher trained by PPO on the low-resolution env, and a tiny encoder."""
+    root = tmp_path_factory.mktemp("dagger")
+    _cmnav(*TEACHER, "--out", str(root / "teacher"), "--steps", "512")
+    torch.manual_seed(0)
+    save_weights(root / "enc", Cmwae(make_config("tiny")), "cmwae", asdict(make_config("tiny")), 0, {"train": {"scheme": "s2"}})
+    return root
+
+
+def test_a_tiny_teacher_trains_on_the_low_resolution_env_and_is_evaluated_alone(trained, tmp_path):
+    card = json.loads((trained / "teacher" / "model.json").read_text())
+    assert card["meta"]["role"] == "teacher" and card["meta"]["encoder"] is None
+    assert card["config"]["obs_dim"] == NavEnvConfig().privileged_obs_dim == STATE_DIM + 32 * 18
+    assert card["step"] == 512
+    stdout, _ = _cmnav("eval", "policy", "--policy", str(trained / "teacher"), "--episodes", "2", "--levels", "0",
+                       "--batch-envs", "2", "--out", str(tmp_path), "--json")  # fmt: skip
+    result = json.loads(stdout.strip().splitlines()[-1])
+    assert result["role"] == "teacher" and [c["condition"] for c in result["cells"]] == ["clean"]  # it sees clean depth only
+    with pytest.raises(ExportError, match="privileged teacher"):
+        export_policy(trained / "enc", trained / "teacher", tmp_path / "t.onnx", random_samples=1)
+
+
+class ScriptedTeacher(nn.Module):
+    """Steer by the privileged observation alone: yaw toward the goal (obs[1] is the goal
+    direction's left component), speed from the nearest depth; records what it was shown."""
+
+    def __init__(self, obs_dim: int) -> None:
+        super().__init__()
+        self.config = PolicyConfig(obs_dim=obs_dim, mlp_sizes=(4,), gru_size=2)
+        self.seen: list[torch.Tensor] = []
+
+    def initial_hidden(self, batch, device="cpu"):
+        return torch.zeros(batch, 2, device=device)
+
+    def step(self, obs, hidden):
+        self.seen.append(obs.clone())
+        nearest = obs[:, STATE_DIM:].min(dim=1).values
+        action = torch.stack([nearest * 4.0 - 1.0, torch.zeros_like(nearest), obs[:, 1] * 2.0], dim=1)
+        return action, torch.zeros(obs.shape[0]), hidden
+
+
+def _env(encoder, corruption="train", n=6, seed=3):
+    config = NavEnvConfig(num_envs=n, corruption=corruption, level_sampling="uniform", kick_probability=0.0,
+                          curriculum=CurriculumConfig(start_level=0, min_level=0, max_level=4))  # fmt: skip
+    return NavEnv(config, encoder, "cpu", seed=seed, teacher_obs=True)
+
+
+def _carry(env, student, teacher):
+    n = env.num_envs
+    return {"obs": env.reset(), "teacher_obs": env.teacher_observation(), "starts": torch.ones(n, dtype=torch.bool),
+            "h_student": student.initial_hidden(n), "h_teacher": teacher.initial_hidden(n)}  # fmt: skip
+
+
+@pytest.mark.parametrize("beta", [0.0, 1.0])
+def test_labels_come_from_the_teacher_on_the_states_the_mixture_visits(beta):
+    torch.manual_seed(1)
+    encoder = Cmwae(make_config("tiny")).encoder
+    env = _env(encoder)
+    teacher = ScriptedTeacher(env.config.privileged_obs_dim)
+    # A frozen normaliser, so that re-running the student afterwards gives the actions it took.
+    student = ActorCritic(PolicyConfig(mlp_sizes=(16,), gru_size=8, obs_norm_max_count=0))
+    steps = 20
+    seq, _ = collect(student, teacher, env, _carry(env, student, teacher), steps, beta, torch.Generator().manual_seed(0))
+    shown = torch.stack(teacher.seen)  # [T, N, P] what the teacher saw at each step
+    # The teacher saw the very states the student saw (the same 15 state values, previous action
+    # included), and its labels are its actions on them, clipped.
+    torch.testing.assert_close(shown[:, :, :STATE_DIM], seq.obs[:, :, :STATE_DIM])
+    expected = torch.stack([ScriptedTeacher(1).step(o, None)[0] for o in shown]).clamp(-1, 1)
+    torch.testing.assert_close(seq.labels, expected)
+    # Who flew: the previous action in the next observation is the executed one.
+    with torch.no_grad():
+        student_actions, _ = student.unroll(seq.obs, seq.hidden0, seq.starts)
+    executed = (seq.labels if beta == 1.0 else student_actions).clamp(-1, 1)
+    continuing = ~seq.starts[1:]
+    torch.testing.assert_close(seq.obs[1:, :, 12:15][continuing], executed[:-1][continuing])
+    assert not torch.allclose(seq.labels, student_actions.clamp(-1, 1))  # the two policies differ
+
+
+def test_corruption_reaches_the_student_and_never_the_teacher():
+    encoder = Cmwae(make_config("tiny")).encoder
+    env = _env(encoder, corruption="episode", n=4)
+    env.reset()
+    _, depth = env.render_inputs()
+    invalid = (depth == 0.0).flatten(1).float().mean(dim=1)
+    assert bool((invalid >= 0.45).all())  # the paper's 1-30 px patches to 50 %
+    teacher_depth = env.teacher_observation()[:, STATE_DIM:]
+    assert bool((teacher_depth > 0.0).all())  # clean: nothing invalid
+    step = env.step(torch.zeros(4, 3))
+    assert bool((step.teacher_obs[:, STATE_DIM:] > 0.0).all())
+    # projector-off episodes also reach only the student
+    off = NavEnv(NavEnvConfig(num_envs=4, corruption="none", projector_off_episode_fraction=1.0), encoder, "cpu", seed=5,
+                 teacher_obs=True)  # fmt: skip
+    off.reset()
+    assert bool((off.render_inputs()[1] == 0.0).flatten(1).any(dim=1).all())
+    assert bool((off.teacher_observation()[:, STATE_DIM:] > 0.0).all())
+
+
+def test_distillation_fits_the_labels():
+    torch.manual_seed(2)
+    encoder = Cmwae(make_config("tiny")).encoder
+    env = _env(encoder, n=8)
+    teacher = ScriptedTeacher(env.config.privileged_obs_dim)
+    student = ActorCritic(PolicyConfig(mlp_sizes=(32,), gru_size=16))
+    seq, _ = collect(student, teacher, env, _carry(env, student, teacher), 16, 1.0, torch.Generator().manual_seed(0))
+    optimizer = torch.optim.Adam(student.parameters(), lr=3e-3)
+    first = distill(student, optimizer, [seq], 1, 2, 1.0, torch.Generator().manual_seed(0))
+    for _ in range(40):
+        last = distill(student, optimizer, [seq], 1, 2, 1.0, torch.Generator().manual_seed(0))
+    assert last < 0.5 * first
+
+
+def test_the_distilled_student_exports_and_the_runtime_loads_it(trained, tmp_path):
+    out = tmp_path / "student"
+    _cmnav("train", "policy", "--teacher", str(trained / "teacher"), "--encoder", str(trained / "enc"), "--out", str(out),
+           "--size", "tiny", "--envs", "4", "--rollout", "8", "--minibatches", "2", "--steps", "64", "--precision", "fp32",
+           "--beta-decay-env-steps", "32")  # fmt: skip
+    card = json.loads((out / "model.json").read_text())
+    assert card["meta"]["role"] == "policy" and card["meta"]["algorithm"] == "dagger"
+    assert card["meta"]["teacher_fingerprint"] and card["config"]["obs_dim"] == 79
+    export_policy(trained / "enc", out, tmp_path / "student.onnx", random_samples=2)  # parity-checked inside
+    model = PolicyModel(tmp_path / "student.onnx")  # the runtime's loader: contract and shapes checked
+    nets = load_networks(trained / "enc", out)
+    inputs = random_inputs(1, model.hidden_size, seed=3)
+    reference = torch_outputs(nets.step, inputs)
+    step = model.step(inputs.gray[0, 0], inputs.depth[0, 0], inputs.state[0], inputs.hidden[0])
+    np.testing.assert_allclose(step.action, reference[c.ONNX_OUTPUT_ACTION][0], atol=PARITY_TOLERANCE)
+
+
+def test_a_policy_is_not_taken_for_a_teacher(tmp_path):
+    save_weights(tmp_path / "p", ActorCritic(PolicyConfig(mlp_sizes=(4,), gru_size=2)), "policy",
+                 PolicyConfig(mlp_sizes=(4,), gru_size=2).to_json(), 0, {"role": "policy"})  # fmt: skip
+    with pytest.raises(ValueError, match="is not a privileged teacher"):
+        load_teacher(tmp_path / "p", torch.device("cpu"))
+    with pytest.raises(ValueError, match="'train' or 'none'"):
+        DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", corruption="episode").validate()

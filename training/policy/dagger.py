@@ -1,0 +1,266 @@
+"""`cmnav train policy --teacher DIR`: the deployed policy distilled from the privileged teacher by
+DAgger (DESIGN §5; Loquercio et al. 2021, Xing et al. 2024).
+
+Every control step the executing policy is a mixture: in each env, with probability beta the
+teacher's action, else the student's (beta falls linearly from ``beta_start`` to ``beta_end``
+over ``beta_decay_env_steps``), so that the student soon visits its own states.  At every state
+visited the teacher labels the action it would take from its privileged observation (the 15 state
+values + clean low-resolution depth, its own GRU state carried along the same trajectory), while
+the student sees what the camera gives: gray + depth corrupted as the paper trains (1-30 px
+patches to 50 % in a random share of the envs each step, and projector-off episodes), through the
+frozen encoder.  Only the student learns: truncated back-propagation through time over each
+rollout's sequences, a mean-squared error to the teacher's clipped action, on the latest rollouts
+kept in a small aggregate buffer.
+
+The student is exactly the network that ships (ActorCritic, 79 inputs, FC 256-128-64 ELU -> GRU
+64 -> FC 3, the normaliser inside); `cmnav export` exports it as any policy.  Its value head is
+not trained here (a PPO fine-tune would warm it up first).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import deque
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import torch
+from torch import Tensor
+from torch.nn import functional as F
+
+from ..checkpoint import checkpoint_fingerprint, load_train_state, save_train_state, save_weights
+from ..cmwae.train import load_cmwae
+from ..distributed import DistInfo, log_weights_digest, wall_budget_spent
+from ..progress import Progress
+from ..tensorboard import ScalarWriter
+from .env import CRASH, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder
+from .network import CHECKPOINT_KIND, STUDENT, TEACHER, ActorCritic, PolicyConfig, load_policy
+
+log = logging.getLogger(__name__)
+_SINGLE = DistInfo()  # one process: the teacher labels every step of its own envs
+
+
+@dataclass(frozen=True)
+class DaggerConfig:
+    teacher_dir: str
+    encoder_dir: str
+    out_dir: str
+    env_steps: int = 2_000_000
+    num_envs: int = 64
+    rollout_steps: int = 32  # the truncated-BPTT sequence length
+    beta_start: float = 1.0
+    beta_end: float = 0.0
+    beta_decay_env_steps: int = 300_000
+    buffer_rollouts: int = 16  # the aggregate: the latest rollouts trained on each iteration
+    epochs: int = 2  # passes over the buffer per iteration
+    minibatches: int = 4  # per pass, split over (rollout, env) sequences
+    lr: float = 5e-4
+    max_grad_norm: float = 1.0
+    # The student's depth: "train" = the paper's training patches on a random share of envs each
+    # step; "none" = clean (the depth-only baseline).  The teacher always sees clean depth.
+    corruption: str = "train"
+    corrupted_env_fraction: float = 0.5
+    projector_off_episode_fraction: float = 0.15
+    min_level: int = 0
+    max_level: int = 20
+    device: str = "cpu"
+    seed: int = 0
+    precision: str = "auto"
+    checkpoint_every: int = 20  # iterations
+    resume: bool = False
+    max_wall_s: float | None = None
+    policy: PolicyConfig = PolicyConfig()
+    env_overrides: dict = field(default_factory=dict)
+
+    def env_config(self) -> NavEnvConfig:
+        curriculum = CurriculumConfig(start_level=self.min_level, min_level=self.min_level, max_level=self.max_level)
+        return replace(NavEnvConfig(num_envs=self.num_envs, corruption=self.corruption, curriculum=curriculum,
+                                    corrupted_env_fraction=self.corrupted_env_fraction, level_sampling="uniform",
+                                    projector_off_episode_fraction=self.projector_off_episode_fraction),
+                       **self.env_overrides)  # fmt: skip
+
+    def validate(self) -> None:
+        if self.corruption not in ("train", "none"):
+            raise ValueError(f"corruption={self.corruption!r} must be 'train' or 'none' (the depth-only baseline)")
+        if not 0.0 <= self.beta_end <= self.beta_start <= 1.0:
+            raise ValueError(f"need 0 <= beta_end ({self.beta_end}) <= beta_start ({self.beta_start}) <= 1")
+        for key in ("env_steps", "num_envs", "rollout_steps", "buffer_rollouts", "epochs", "minibatches", "checkpoint_every"):
+            if getattr(self, key) < 1:
+                raise ValueError(f"{key}={getattr(self, key)} must be >= 1")
+        if self.minibatches > self.num_envs * self.buffer_rollouts:
+            raise ValueError(f"minibatches={self.minibatches} exceeds the buffer's {self.num_envs * self.buffer_rollouts} sequences")
+        if self.policy.obs_dim != PolicyConfig().obs_dim:
+            raise ValueError("the student is the deployed network: its observation is the contract's 79 values")
+        self.env_config().validate()
+
+    def beta(self, env_steps: int) -> float:
+        """The teacher's share of the executed actions after ``env_steps`` env steps."""
+        progress = min(env_steps / max(self.beta_decay_env_steps, 1), 1.0)
+        return self.beta_start + (self.beta_end - self.beta_start) * progress
+
+
+@dataclass
+class Sequences:
+    """One rollout of T steps x N envs as the student saw it, labelled by the teacher."""
+
+    obs: Tensor  # [T, N, 79] the student's observations
+    starts: Tensor  # [T, N] bool: an episode begins at this step
+    labels: Tensor  # [T, N, 3] the teacher's action, clipped to [-1, 1]
+    hidden0: Tensor  # [N, H] the student's GRU state before step 0
+
+
+@torch.no_grad()
+def collect(student: ActorCritic, teacher: ActorCritic, env: NavEnv, carry: dict, steps: int, beta: float,
+            generator: torch.Generator) -> tuple[Sequences, dict]:  # fmt: skip
+    """Fly ``steps`` steps with the beta-mixture of teacher and student; label every visited state
+    with the teacher's action.  ``carry`` holds what continues between calls: obs, teacher_obs,
+    both GRU states, starts.  Returns the labelled sequences and episode counts."""
+    student.eval()
+    obs, teacher_obs = carry["obs"], carry["teacher_obs"]
+    h_student, h_teacher, starts = carry["h_student"], carry["h_teacher"], carry["starts"]
+    n = env.num_envs
+    buf_obs = torch.zeros(steps, n, obs.shape[-1], device=obs.device)
+    buf_starts = torch.zeros(steps, n, dtype=torch.bool, device=obs.device)
+    buf_labels = torch.zeros(steps, n, 3, device=obs.device)
+    hidden0 = torch.where(starts.unsqueeze(-1), torch.zeros_like(h_student), h_student)
+    outcomes = {SUCCESS: 0, CRASH: 0, TIMEOUT: 0}
+    teacher_steps = 0
+    for t in range(steps):
+        student.obs_norm.update(obs)
+        h_student = torch.where(starts.unsqueeze(-1), torch.zeros_like(h_student), h_student)
+        h_teacher = torch.where(starts.unsqueeze(-1), torch.zeros_like(h_teacher), h_teacher)
+        student_action, _, h_student = student.step(obs, h_student)
+        teacher_action, _, h_teacher = teacher.step(teacher_obs, h_teacher)
+        label = teacher_action.clamp(-1.0, 1.0)
+        by_teacher = torch.rand(n, generator=generator).to(obs.device) < beta
+        teacher_steps += int(by_teacher.sum())
+        result = env.step(torch.where(by_teacher.unsqueeze(-1), label, student_action))
+        buf_obs[t], buf_starts[t], buf_labels[t] = obs, starts, label
+        for code in outcomes:
+            outcomes[code] += int((result.outcome[result.done] == code).sum())
+        obs, teacher_obs, starts = result.obs, result.teacher_obs, result.done
+    carry.update(obs=obs, teacher_obs=teacher_obs, h_student=h_student, h_teacher=h_teacher, starts=starts)
+    finished = sum(outcomes.values())
+    stats = {"finished": float(finished), "teacher_share": teacher_steps / (steps * n)}
+    if finished:
+        stats |= {"success_rate": outcomes[SUCCESS] / finished, "crash_rate": outcomes[CRASH] / finished}
+    return Sequences(buf_obs, buf_starts, buf_labels, hidden0), stats
+
+
+def distill(student: ActorCritic, optimizer: torch.optim.Optimizer, buffer: list[Sequences], epochs: int,
+            minibatches: int, max_grad_norm: float, generator: torch.Generator) -> float:  # fmt: skip
+    """Fit the student to the teacher's labels on every sequence in ``buffer`` (truncated BPTT
+    over each rollout); returns the mean loss of the last pass."""
+    student.train()
+    obs = torch.cat([b.obs for b in buffer], dim=1)
+    starts = torch.cat([b.starts for b in buffer], dim=1)
+    labels = torch.cat([b.labels for b in buffer], dim=1)
+    hidden0 = torch.cat([b.hidden0 for b in buffer], dim=0)
+    sequences = obs.shape[1]
+    losses: list[float] = []
+    for _ in range(epochs):
+        losses = []
+        order = torch.randperm(sequences, generator=generator).to(obs.device)
+        for chunk in order.chunk(minibatches):
+            mean, _ = student.unroll(obs[:, chunk], hidden0[chunk], starts[:, chunk])
+            loss = F.mse_loss(mean, labels[:, chunk])
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(student.parameters(), max_grad_norm)
+            optimizer.step()
+            losses.append(float(loss.detach()))
+    return sum(losses) / len(losses)
+
+
+def load_teacher(teacher_dir: str | Path, device: torch.device) -> tuple[ActorCritic, dict]:
+    teacher, card = load_policy(teacher_dir, device)
+    if card.get("meta", {}).get("role") != TEACHER:
+        raise ValueError(f"--teacher {teacher_dir} is not a privileged teacher (meta.role is "
+                         f"{card.get('meta', {}).get('role')!r}): train one with cmnav train teacher")  # fmt: skip
+    for p in teacher.parameters():
+        p.requires_grad_(False)
+    return teacher, card
+
+
+def train_dagger(config: DaggerConfig) -> Path:
+    """Distil the teacher into the deployed student; returns the checkpoint directory."""
+    config.validate()
+    device = torch.device(config.device)
+    out = Path(config.out_dir)
+    torch.manual_seed(config.seed)
+    teacher, teacher_card = load_teacher(config.teacher_dir, device)
+    env_config = config.env_config()
+    if teacher.config.obs_dim != env_config.privileged_obs_dim:
+        raise ValueError(f"the teacher observes {teacher.config.obs_dim} values, this env's privileged observation has "
+                         f"{env_config.privileged_obs_dim}: distil with the privileged depth size it was trained on")  # fmt: skip
+    cmwae, encoder_card = load_cmwae(config.encoder_dir, device)
+    encoder_fingerprint = checkpoint_fingerprint(config.encoder_dir)
+    env = NavEnv(env_config, env_encoder(cmwae.encoder, config.precision, device, seed=config.seed), device,
+                 seed=config.seed * 1000 + 7, teacher_obs=True)  # fmt: skip
+    student = ActorCritic(config.policy).to(device)
+    optimizer = torch.optim.Adam(student.parameters(), lr=config.lr)
+    generator = torch.Generator().manual_seed(config.seed * 1000 + 11)
+    iteration, env_steps = 0, 0
+    state = load_train_state(out) if config.resume else None
+    if state is not None:
+        if state.get("encoder_fingerprint") != encoder_fingerprint:
+            raise ValueError(f"--resume: {out} was distilled on encoder {state.get('encoder_fingerprint')}, but "
+                             f"{config.encoder_dir} is {encoder_fingerprint}; resume with the same --encoder or start a new --out")  # fmt: skip
+        student.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        env.generator.set_state(state["env_rng"])
+        generator.set_state(state["rng"])
+        iteration, env_steps = state["iteration"], state["env_steps"]
+        log.info("resumed %s at iteration %d (%d env steps)", out, iteration, env_steps)
+    elif config.resume:
+        log.warning("--resume: no training state in %s, starting from scratch", out)
+    steps_per_iteration = config.rollout_steps * config.num_envs
+    total_iterations = -(-config.env_steps // steps_per_iteration)
+    writer = ScalarWriter(out / "tensorboard")
+    progress = Progress(total_iterations * steps_per_iteration, "distil policy (DAgger)", unit="env-steps", initial=env_steps)
+    meta = {
+        "role": STUDENT, "algorithm": "dagger",
+        "train": {k: v for k, v in asdict(config).items() if k != "policy"},
+        "teacher": str(config.teacher_dir), "teacher_fingerprint": checkpoint_fingerprint(config.teacher_dir),
+        "teacher_env_steps": teacher_card.get("step"),
+        "encoder": str(config.encoder_dir), "encoder_fingerprint": encoder_fingerprint,
+        "encoder_step": encoder_card.get("step"),
+        "encoder_scheme": encoder_card.get("meta", {}).get("train", {}).get("scheme"),
+        "encoder_modalities": encoder_card["config"]["modalities"], "world_size": 1, "seed": config.seed,
+    }  # fmt: skip
+
+    def checkpoint() -> None:
+        save_weights(out, student, CHECKPOINT_KIND, config.policy.to_json(), env_steps,
+                     {**meta, "env_steps": env_steps, "iteration": iteration})  # fmt: skip
+        save_train_state(out, {"model": student.state_dict(), "optimizer": optimizer.state_dict(), "iteration": iteration,
+                               "env_steps": env_steps, "env_rng": env.generator.get_state(), "rng": generator.get_state(),
+                               "encoder_fingerprint": encoder_fingerprint})  # fmt: skip
+
+    obs = env.reset()
+    carry = {"obs": obs, "teacher_obs": env.teacher_observation(), "starts": torch.ones(config.num_envs, dtype=torch.bool, device=device),
+             "h_student": student.initial_hidden(config.num_envs, device), "h_teacher": teacher.initial_hidden(config.num_envs, device)}  # fmt: skip
+    buffer: deque[Sequences] = deque(maxlen=config.buffer_rollouts)
+    t_start = time.monotonic()
+    while iteration < total_iterations:
+        t_iter = time.monotonic()
+        beta = config.beta(env_steps)
+        sequences, stats = collect(student, teacher, env, carry, config.rollout_steps, beta, generator)
+        buffer.append(sequences)
+        loss = distill(student, optimizer, list(buffer), config.epochs, config.minibatches, config.max_grad_norm, generator)
+        iteration += 1
+        env_steps += steps_per_iteration
+        writer.add_scalars(env_steps, {"dagger/loss": loss, "dagger/beta": beta, "perf/env_steps_per_s": steps_per_iteration / (time.monotonic() - t_iter)}
+                           | {f"episodes/{k}": v for k, v in stats.items()})  # fmt: skip
+        progress.update(steps_per_iteration, beta=round(beta, 3), loss=loss, success=stats.get("success_rate", float("nan")))
+        if iteration % config.checkpoint_every == 0 and iteration < total_iterations:
+            checkpoint()
+        if config.max_wall_s is not None and wall_budget_spent(config.max_wall_s, t_start, _SINGLE, device):
+            log.info("wall-clock budget of %.0f s reached after %d env steps", config.max_wall_s, env_steps)
+            break
+    checkpoint()
+    log_weights_digest(student, _SINGLE)
+    progress.close()
+    writer.close()
+    return out
+

@@ -582,10 +582,12 @@ def build_parser() -> argparse.ArgumentParser:
     bench_runtime.set_defaults(func=_cmd_bench_runtime)
     bench_train = bench_sub.add_parser(
         "train",
-        help="policy-training env-steps/s for N envs, with the share of render, preprocess, encoder, physics, "
-        "policy and PPO update",
-        description="Collect one PPO rollout in the batched navigation env (training configuration) for each N and "
-        "run one PPO update on it, on one device; print env-steps/s and each stage's share of the time.",
+        help="training speed: the encoder per precision, policy env-steps/s (fp32 and the fast path) with each "
+        "stage's share, the teacher's env-steps/s, CMWAE train steps/s",
+        description="In one run on one device: the frozen encoder's frames/s in fp32, fp32 channels_last and bf16 "
+        "channels_last with bf16's latent error; one PPO rollout + update in the batched navigation env for each N "
+        "with the encoder in fp32 and on the path --precision auto picks (env-steps/s, each stage's share); the "
+        "privileged teacher's env; CMWAE optimizer steps/s per precision.  Ratios are within this run.",
     )
     bench_train.add_argument("--envs", type=lambda t: [int(x) for x in t.split(",") if x], default=[16, 64],
                              help="comma-separated env counts (default 16,64)")  # fmt: skip

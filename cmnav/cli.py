@@ -184,7 +184,7 @@ def _cmd_pipeline(args: argparse.Namespace) -> int:
     config = PipelineConfig(
         out_dir=args.out, minutes=args.minutes, device=args.device, seed=args.seed, dataset_count=args.dataset_count,
         dataset=args.dataset, encoder_size=args.encoder_size, encoder_batch_size=args.encoder_batch_size,
-        policy_size=args.policy_size, envs=args.envs, eval_episodes=args.eval_episodes, eval_levels=tuple(args.eval_levels),
+        policy_size=args.policy_size, envs=args.envs, teacher_envs=args.teacher_envs, eval_episodes=args.eval_episodes, eval_levels=tuple(args.eval_levels),
         call_minutes=args.call_minutes,
     )  # fmt: skip
     summary = run_pipeline(config, sys.argv[1:])
@@ -501,7 +501,8 @@ def build_parser() -> argparse.ArgumentParser:
     pipeline.add_argument("--encoder-size", choices=["paper", "small", "tiny"], default="paper")
     pipeline.add_argument("--encoder-batch-size", type=int, default=64)
     pipeline.add_argument("--policy-size", choices=["paper", "tiny"], default="paper")
-    pipeline.add_argument("--envs", type=int, default=512, help="policy-training envs (default 512)")
+    pipeline.add_argument("--envs", type=int, default=512, help="the student's (DAgger) envs (default 512)")
+    pipeline.add_argument("--teacher-envs", type=int, default=1024, help="the teacher's (PPO) envs (default 1024)")
     pipeline.add_argument("--eval-episodes", type=int, default=100, help="Table II episodes per cell (default 100)")
     pipeline.add_argument("--eval-levels", type=int_list, default=[0, 5, 10, 15, 20], help="Table II levels")
     pipeline.add_argument("--call-minutes", type=float,

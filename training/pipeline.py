@@ -1,10 +1,13 @@
-"""`cmnav pipeline`: dataset -> encoder (S2) -> Table I -> policy -> export -> Table II, within a
-wall-clock budget on one device, leaving everything a commit needs in one directory:
+"""`cmnav pipeline`: dataset -> encoder (S2) -> Table I -> teacher -> student -> Table II -> export,
+within a wall-clock budget on one device (DESIGN §5's recipe: a privileged teacher trained by PPO
+on state + low-resolution clean depth, distilled by DAgger into the deployed policy, whose depth is
+corrupted as the paper trains), leaving everything a commit needs in one directory:
 
   OUT/data/               the rendered dataset (not committed)
   OUT/encoder/            CMWAE S2 checkpoint: model.json + fp16 shards <= 15 MiB (+ train_state.pt)
   OUT/encoder/eval/       table1.json (+ plots when OpenCV is installed)
-  OUT/policy/             policy checkpoint: model.json + fp16 shard (+ train_state.pt)
+  OUT/teacher/            the privileged teacher (+ eval/: its clean Table II, the student's upper bound)
+  OUT/policy/             the distilled student: model.json + fp16 shard (+ train_state.pt)
   OUT/policy/eval/        table2.json, table2.md (+ trajectory plots when OpenCV is installed)
   OUT/model.onnx          the runtime's model, parity-checked
   OUT/MODEL_CARD.md       how it was made, both tables, stage timings
@@ -36,7 +39,7 @@ import torch
 log = logging.getLogger(__name__)
 
 # Shares of the budget for the stages that stop on the clock.
-BUDGET_SHARES = {"encoder": 0.35, "policy": 0.50}
+BUDGET_SHARES = {"encoder": 0.35, "teacher": 0.30, "policy": 0.25}
 # Time kept back at the end of a call for the checkpoint a training stage writes when it stops:
 # this much, or a tenth of a short call.
 CALL_RESERVE_S = 30.0
@@ -53,7 +56,8 @@ class PipelineConfig:
     encoder_size: str = "paper"
     encoder_batch_size: int = 64
     policy_size: str = "paper"
-    envs: int = 512
+    envs: int = 512  # the student's (DAgger) envs
+    teacher_envs: int = 1024
     eval_episodes: int = 100
     eval_levels: tuple[int, ...] = (0, 5, 10, 15, 20)
     table1_max_images: int | None = None
@@ -78,6 +82,7 @@ def run_pipeline(config: PipelineConfig, argv: list[str] | None = None) -> dict:
     from .cmwae.train import CmwaeTrainConfig, train_cmwae
     from .data.generate import DatasetSpec, generate_dataset
     from .policy.evaluate import PolicyEvalConfig, evaluate_policy, format_table2
+    from .policy.dagger import DaggerConfig, train_dagger
     from .policy.network import POLICY_SIZES
     from .policy.train import PolicyTrainConfig, train_policy
 
@@ -93,7 +98,7 @@ def run_pipeline(config: PipelineConfig, argv: list[str] | None = None) -> dict:
     call_end = time.monotonic() + (config.call_minutes * 60.0 if config.call_minutes else float("inf"))
     reserve_s = min(CALL_RESERVE_S, 6.0 * config.call_minutes) if config.call_minutes else CALL_RESERVE_S
     data_dir = Path(config.dataset) if config.dataset else out / "data"
-    encoder_dir, policy_dir = out / "encoder", out / "policy"
+    encoder_dir, teacher_dir, policy_dir = out / "encoder", out / "teacher", out / "policy"
 
     def run(name: str, work, budget_share: float | None = None) -> bool:
         """Run stage ``name`` unless done; a training stage gets what is left of its share of the
@@ -132,11 +137,24 @@ def run_pipeline(config: PipelineConfig, argv: list[str] | None = None) -> dict:
         return evaluate_cmwae(CmwaeEvalConfig(checkpoint=str(encoder_dir), data_dir=str(data_dir), device=config.device,
                                               max_images=config.table1_max_images, seed=config.seed))  # fmt: skip
 
-    def policy(limit_s, resume):
+    def teacher(limit_s, resume):
         train_policy(PolicyTrainConfig(
-            encoder_dir=str(encoder_dir), out_dir=str(policy_dir), env_steps=10**12, num_envs=config.envs,
+            encoder_dir=None, out_dir=str(teacher_dir), env_steps=10**12, num_envs=config.teacher_envs, corruption="none",
             device=config.device, seed=config.seed, policy=POLICY_SIZES[config.policy_size], max_wall_s=limit_s,
             resume=resume,
+        ))  # fmt: skip
+
+    def teacher_table2(limit_s, resume):
+        return evaluate_policy(PolicyEvalConfig(
+            policy_dir=str(teacher_dir), encoder_dir=None, levels=config.eval_levels, conditions=("clean",),
+            episodes=config.eval_episodes, batch_envs=min(config.eval_episodes, 256), device=config.device, seed=config.seed,
+        ))  # fmt: skip
+
+    def policy(limit_s, resume):
+        train_dagger(DaggerConfig(
+            teacher_dir=str(teacher_dir), encoder_dir=str(encoder_dir), out_dir=str(policy_dir), env_steps=10**12,
+            num_envs=config.envs, device=config.device, seed=config.seed, policy=POLICY_SIZES[config.policy_size],
+            max_wall_s=limit_s, resume=resume,
         ))  # fmt: skip
 
     def table2(limit_s, resume):
@@ -149,6 +167,7 @@ def run_pipeline(config: PipelineConfig, argv: list[str] | None = None) -> dict:
         return export_policy(encoder_dir, policy_dir, out / "model.onnx").to_json()
 
     stages = [("dataset", dataset, None), ("encoder", encoder, BUDGET_SHARES["encoder"]), ("table1", table1, None),
+              ("teacher", teacher, BUDGET_SHARES["teacher"]), ("teacher_table2", teacher_table2, None),
               ("policy", policy, BUDGET_SHARES["policy"]), ("table2", table2, None), ("export", export, None)]  # fmt: skip
     if config.dataset is not None:
         stages = stages[1:]
@@ -159,9 +178,10 @@ def run_pipeline(config: PipelineConfig, argv: list[str] | None = None) -> dict:
     results = state["results"]
     summary = {"done": True, "config": asdict(config), "command": "cmnav " + shlex.join(argv or []),
                "hardware": _hardware(config.device), "timings_s": state["spent_s"], "table1": results["table1"],
-               "table2": results["table2"], "export": results["export"], "out_dir": str(out)}  # fmt: skip
+               "teacher_table2": results["teacher_table2"], "table2": results["table2"], "export": results["export"],
+               "out_dir": str(out)}  # fmt: skip
     (out / "pipeline.json").write_text(json.dumps(summary, indent=2, default=str))
-    (out / "MODEL_CARD.md").write_text(model_card(summary, format_table2(results["table2"])))
+    (out / "MODEL_CARD.md").write_text(model_card(summary, format_table2(results["table2"]), format_table2(results["teacher_table2"])))
     log.info("pipeline done: %s", out)
     return summary
 
@@ -173,7 +193,7 @@ def _hardware(device: str) -> str:
     return f"CPU only ({cpu}); torch {torch.__version__}"
 
 
-def model_card(summary: dict, table2_md: str) -> str:
+def model_card(summary: dict, table2_md: str, teacher_table2_md: str) -> str:
     c, t1 = summary["config"], summary["table1"]
     timings = ", ".join(f"{k} {v:.0f} s" for k, v in summary["timings_s"].items())
     export = summary["export"]
@@ -184,8 +204,10 @@ Made by one run of `{summary['command']}` on {summary['hardware']}
 
 - Data: {'`' + c['dataset'] + '`' if c['dataset'] else f"{c['dataset_count']} rendered gray/depth pairs (`cmnav dataset`, seed {c['seed']})"}.
 - Encoder: CMWAE, scheme S2, {c['encoder_size']} size, batch {c['encoder_batch_size']}, {t1['step']} steps.
-- Policy: recurrent PPO, {c['policy_size']} size, {c['envs']} envs, seed {c['seed']}; see `policy/model.json` for env
-  steps and the curriculum level reached.
+- Teacher: recurrent PPO on state + 32x18 clean depth (no encoder), {c['policy_size']} size, {c['teacher_envs']} envs,
+  seed {c['seed']}; `teacher/model.json` has its env steps and curriculum level.  It never flies.
+- Policy: the deployed network distilled from the teacher by DAgger, {c['envs']} envs, its depth corrupted as the
+  paper trains (1-30 px patches, projector-off episodes); `policy/model.json` has its env steps.
 - Export: `model.onnx`, parity (max abs error, ONNX Runtime vs torch): {json.dumps(export.get('parity'))}.
 
 ## Table I (held-out split, MSE x10^-3 / SSIM x10^-2)
@@ -196,5 +218,11 @@ MSE at 50 % over 0 %: {t1['mse_ratio_50_over_0']}x (the paper's: 1.35x).
 
 ## Table II ({c['eval_episodes']} episodes per cell; success / timeout / crash %)
 
+The distilled policy:
+
 {table2_md}
+
+The teacher (clean depth only: its upper bound):
+
+{teacher_table2_md}
 """

@@ -156,7 +156,8 @@ def test_pipeline_runs_offline_in_several_calls(offline_env, tmp_path):
     out = tmp_path / "pipeline"
     command = [sys.executable, "-m", "cmnav", "pipeline", "--device", "cpu", "--minutes", "0.5", "--call-minutes", "0.2",
                "--out", str(out), "--dataset-count", "80", "--encoder-size", "tiny", "--encoder-batch-size", "4",
-               "--policy-size", "tiny", "--envs", "4", "--eval-episodes", "1", "--eval-levels", "0"]  # fmt: skip
+               "--policy-size", "tiny", "--envs", "4", "--teacher-envs", "8", "--eval-episodes", "1",
+               "--eval-levels", "0"]  # fmt: skip
     codes = []
     for _ in range(8):
         proc = subprocess.run(command, cwd=REPO, env=offline_env, capture_output=True, text=True, timeout=280)
@@ -166,10 +167,11 @@ def test_pipeline_runs_offline_in_several_calls(offline_env, tmp_path):
             break
     assert codes[0] == 3 and codes[-1] == 0, codes
     state = json.loads((out / "pipeline_state.json").read_text())
-    assert state["done"] == ["dataset", "encoder", "table1", "policy", "table2", "export"]
-    assert state["spent_s"]["encoder"] >= 0.35 * 30 - 3 and state["spent_s"]["policy"] >= 0.5 * 30 - 3
+    assert state["done"] == ["dataset", "encoder", "table1", "teacher", "teacher_table2", "policy", "table2", "export"]
+    assert state["spent_s"]["encoder"] >= 0.35 * 30 - 3 and state["spent_s"]["teacher"] >= 0.3 * 30 - 3
+    assert state["spent_s"]["policy"] >= 0.25 * 30 - 3
     card = (out / "MODEL_CARD.md").read_text()
-    assert "| 50% |" in card and "| projector-off | 0 | 1 |" in card
+    assert "| 50% |" in card and "| projector-off | 0 | 1 |" in card and "The teacher (clean depth only" in card
     summary = json.loads((out / "pipeline.json").read_text())
     assert summary["export"]["parity"]["random (seed 0)"]["action"] <= 1e-4
 

@@ -258,6 +258,17 @@ class FlightLoop:
             self.frames.put(frame)
             if self.recorder is not None:
                 self.recorder.log_frame(frame)
+            await self._check_sim_contact(frame)
+
+    async def _check_sim_contact(self, frame: Frame) -> None:
+        """A SITL world that follows an external autopilot reports a contact in the frame's meta
+        (``sim.follower``): end the episode as any trip does (hover, then Hold)."""
+        contact = frame.meta.get("contact") if isinstance(frame.meta, dict) else None
+        if contact is None or not self.watchdog.supervising or self.watchdog.tripped is not None:
+            return
+        what = contact.get("what", "?") if isinstance(contact, dict) else str(contact)
+        now = time.monotonic_ns()
+        await self.watchdog.trip(TripCause.SIM_CONTACT, f"the simulated world reports contact: {what}", frame.t_capture_ns, now)
 
     async def _state_log_task(self) -> None:
         status_seq_logged = 0

@@ -111,6 +111,15 @@ class WorldFollower:
     def link_port(self) -> int:
         return self._link.local_port
 
+    @property
+    def camera_port(self) -> int:
+        return self._server.port
+
+    @property
+    def followed(self) -> Kinematics | None:
+        """The latest followed pose in the room (world ENU, body FLU), None before placement."""
+        return self._kin
+
     def run(self, stop: threading.Event) -> None:
         """Wait for the autopilot, place the room, follow until ``stop``; always writes the trace."""
         try:

@@ -242,7 +242,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="fly one episode: SITL vehicle + the real runtime as separate processes",
         description="Start the SITL vehicle and the runtime, arm, take off, fly the model in "
         "offboard until success (within 1 m of the goal), crash or timeout, then hover, land and "
-        "stop both processes.  Writes the MCAP flight log and a top-view trajectory plot.",
+        "stop both processes.  Writes the MCAP flight log and a top-view trajectory plot.  With --autopilot "
+        "it flies an external autopilot (PX4 SITL) instead of our vehicle: the camera world follows its pose "
+        "(docs/px4-sitl.md).",
     )
     sitl.add_argument("--model", required=True, help="ONNX model with the runtime's contract")
     sitl.add_argument("--level", type=int, default=0, help="curriculum level = number of obstacles (default 0)")

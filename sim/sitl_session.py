@@ -183,7 +183,7 @@ def run_sitl(request: SitlRequest) -> dict:
             runtime = subprocess.Popen(
                 [sys.executable, "-m", "runtime.sitl_flight", "--mavlink-port", str(mavlink_port),
                  "--camera-port", str(camera_port), "--model", str(request.model_path),
-                 "--goal-rel-home", ",".join(f"{v:.4f}" for v in episode["goal_rel_home_enu_m"]),
+                 "--goal-rel-home=" + ",".join(f"{v:.4f}" for v in episode["goal_rel_home_enu_m"]),  # "=": may start with "-"
                  "--takeoff-alt-m", f"{episode['takeoff_alt_m']:.3f}", "--timeout-s", str(request.timeout_s),
                  "--log-dir", str(run_dir), "--summary", str(summary_path), *request.injections_at(FaultSite.RUNTIME),
                  "--cpu-affinity", ",".join(map(str, request.runtime_cpus)), "--intra-op-threads", str(request.runtime_threads)],
@@ -316,6 +316,7 @@ def merge_summary(
     if request.autopilot_url is not None:
         summary["autopilot"] = request.autopilot_url
         summary["ground_truth"] = trace.get("verdict")
+        summary["pose_stream"] = trace.get("pose_stream")
     if request.injections:
         summary["faults"] = fault_records(request.injections, trace, flight, t_kill_s)
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))

@@ -45,7 +45,7 @@ log = logging.getLogger(__name__)
 
 POLL_S = 0.01
 WAIT_LOG_PERIOD_S = 5.0
-TRACE_PERIOD_S = 0.02  # every pose at the requested 50 Hz
+TRACE_PERIOD_S = 0.015  # every pose at the requested 50 Hz, with room for jitter
 
 
 class FollowerNotReadyError(RuntimeError):
@@ -248,7 +248,9 @@ class WorldFollower:
         record = self._trace.to_record(self._mode_log, self._server.served(), {})
         record["verdict"] = self._judge.verdict.record() if self._judge is not None else None
         record["placement"] = self._placement.record() if self._placement is not None else None
+        rate_hz = v.position_rate_hz()
         record["pose_stream"] = {"position_messages": v.position_messages, "attitude_messages": v.attitude_messages,
+                                 "position_rate_hz": None if rate_hz is None else round(rate_hz, 1),
                                  "bad_datagrams": self._link.bad_datagrams}  # fmt: skip
         write_json_atomic(self._config.trace_json, record)
         log.info("trace written to %s: %d poses, %d frames served, contact %s", self._config.trace_json,

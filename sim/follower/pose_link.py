@@ -87,6 +87,7 @@ class AutopilotView:
     t_attitude_ns: int = 0
     position_messages: int = 0
     attitude_messages: int = 0
+    t_first_position_ns: int = 0
     events: list[tuple[float, str]] = field(default_factory=list)
 
     def pose(self) -> AutopilotPose | None:
@@ -95,6 +96,12 @@ class AutopilotView:
             return None
         return AutopilotPose(max(self.t_position_ns, self.t_attitude_ns), self.pos_ned_m, self.vel_ned_m_s,
                              self.quat_ned_frd, self.rates_frd_rad_s)  # fmt: skip
+
+    def position_rate_hz(self) -> float | None:
+        """LOCAL_POSITION_NED messages per second received so far (None: fewer than two)."""
+        if self.position_messages < 2 or self.t_position_ns <= self.t_first_position_ns:
+            return None
+        return (self.position_messages - 1) / ((self.t_position_ns - self.t_first_position_ns) * 1e-9)
 
     @property
     def on_ground(self) -> bool:
@@ -203,6 +210,7 @@ class PoseLink:
             v.pos_ned_m = np.array([msg.x, msg.y, msg.z], dtype=np.float64)
             v.vel_ned_m_s = np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64)
             v.t_position_ns = now_ns
+            v.t_first_position_ns = v.t_first_position_ns or now_ns
             v.position_messages += 1
             kind = "pose"
         elif kind == "ATTITUDE_QUATERNION":

@@ -45,12 +45,16 @@ def parse_args(argv: list[str] | None = None) -> SitlConfig:
     parser.add_argument("--pose-port", type=int,
                         help="a second MAVLink link to 127.0.0.1:POSE_PORT with its own streams (as PX4's GCS link to "
                         "14550), for the world follower (python -m sim.follower)")  # fmt: skip
+    parser.add_argument("--heading-deg", type=float, default=0.0,
+                        help="heading at spawn, degrees counter-clockwise from the room's +x (default 0: facing the goal "
+                        "side; 90 = north, where PX4 SIH starts)")  # fmt: skip
     args = parser.parse_args(argv)
     try:
         injections = tuple(parse_injection(text, [FaultSite.VEHICLE]) for text in args.inject)
         config = SitlConfig(
             args.mavlink_port, args.camera_port, args.level, args.seed, args.episode_json, args.trace,
             args.physics_hz, args.camera_hz, injections, args.status_json, args.degrade, args.stand_in, args.pose_port,
+            args.heading_deg,
         )  # fmt: skip
         config.validate()
     except ValueError as err:  # InjectionError is one

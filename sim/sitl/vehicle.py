@@ -11,6 +11,7 @@ own thread from the latest pose, and the frame server sends from its own threads
 from __future__ import annotations
 
 import logging
+import math
 import select
 import threading
 import time
@@ -74,11 +75,16 @@ class SitlConfig:
     stand_in: bool = False
     # A second MAVLink link (as PX4's GCS link to 14550), to 127.0.0.1:pose_port; None = none.
     pose_port: int | None = None
+    # Heading at spawn, degrees counter-clockwise from the room's +x (PX4 SIH starts facing
+    # north: 90 in ENU); 0 faces the goal side, as in training.
+    heading_deg: float = 0.0
 
     def validate(self) -> None:
         """Raise ValueError naming the bad option."""
         if self.degrade not in DEGRADATIONS:
             raise ValueError(f"--degrade {self.degrade!r} must be one of {sorted(DEGRADATIONS)}")
+        if not -360.0 <= self.heading_deg <= 360.0:
+            raise ValueError(f"--heading-deg {self.heading_deg} must be in [-360, 360]")
         if self.level < 0:
             raise ValueError(f"--level {self.level} must be >= 0")
         if not 10.0 <= self.physics_hz <= 1000.0:
@@ -103,8 +109,8 @@ class SitlVehicle:
         t_s = self._t_boot_ns * 1e-9
         self._world = make_worlds(config.level, config.seed, 1)
         start = self._world.start_m[0].double().numpy()
-        # Facing +x, the goal side of the room, as in training.
-        self._airframe = Airframe(self._world, start[:2], yaw_enu_rad=0.0, world_contact=not config.stand_in)
+        self._airframe = Airframe(self._world, start[:2], yaw_enu_rad=math.radians(config.heading_deg),
+                                  world_contact=not config.stand_in)  # fmt: skip
         self._home_enu_m = self._airframe.home_enu_m
         self._kin = self._airframe.kinematics(self._t_boot_ns)
         geo = GeodeticHome()

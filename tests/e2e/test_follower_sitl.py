@@ -7,11 +7,13 @@ the followed pose, crash reporting over the camera link.  Real processes over lo
 from __future__ import annotations
 
 import json
+import math
 import socket
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from export.goal_seeker import export_goal_seeker
@@ -28,7 +30,7 @@ def goal_seeker(tmp_path_factory) -> Path:
     return path
 
 
-def _fly(model: Path, out: Path, level: int, seed: int) -> tuple[int, dict, str, dict]:
+def _fly(model: Path, out: Path, level: int, seed: int, *stand_in_args: str) -> tuple[int, dict, str, dict]:
     """Stand-in vehicle + ``cmnav sitl --autopilot``; returns (exit code, summary, stderr, the
     stand-in's own trace)."""
     offboard_port, pose_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
@@ -37,7 +39,7 @@ def _fly(model: Path, out: Path, level: int, seed: int) -> tuple[int, dict, str,
         stand_in = subprocess.Popen(
             [sys.executable, "-m", "sim.sitl", "--stand-in", "--mavlink-port", str(offboard_port), "--pose-port",
              str(pose_port), "--level", "0", "--seed", "99", "--episode-json", str(out / "stand_in_episode.json"),
-             "--trace", str(trace_path)],
+             "--trace", str(trace_path), *stand_in_args],
             stdout=log, stderr=subprocess.STDOUT,
         )  # fmt: skip
     try:
@@ -60,15 +62,23 @@ def _modes_after_offboard(trace: dict) -> list[str]:
 
 
 def test_follower_flies_the_stand_in_autopilot_to_the_goal(goal_seeker, tmp_path):
-    code, summary, stderr, stand_in = _fly(goal_seeker, tmp_path, level=0, seed=1)
+    # Spawned facing north, as PX4 SIH starts: the room is placed along the autopilot's heading.
+    code, summary, stderr, stand_in = _fly(goal_seeker, tmp_path, 0, 1, "--heading-deg", "90")
     assert code == 0, f"exit {code}; summary {summary}; stderr:\n{stderr[-3000:]}"
     assert summary["outcome"] == "success" and summary["watchdog_trips"] == []
     assert summary["final_distance_m"] <= 1.5 and summary["path_m"] > 5.0
     truth = summary["ground_truth"]
     assert truth["contact"] is None and truth["geofence"] is None and truth["timeout_t_s"] is None
     assert truth["goal_reached_t_s"] > truth["offboard_t_s"]
+    episode = json.loads((Path(summary["run_dir"]) / "episode.json").read_text())
+    assert abs(episode["placement"]["heading_local_enu_rad"] - math.pi / 2) < 0.01
+    # Offboard flight went north in the autopilot's frame: the room's +x is its north.
+    start_local = np.asarray(stand_in["pos_enu_m"][0])
+    end_local = np.asarray(stand_in["pos_enu_m"][-1])
+    assert end_local[1] - start_local[1] > 5.0 and abs(end_local[0] - start_local[0]) < 0.5 * (end_local[1] - start_local[1])
     # The follower followed the pose at the requested rate: frames were rendered and served in flight.
     assert summary["frames"] > 0.5 * 15 * summary["time_s"]
+    assert summary["pose_stream"]["position_messages"] > summary["frames"]  # poses came faster than frames
     tracking = summary["tracking_error_m_s"]
     assert tracking["n"] > 0.5 * summary["frames"] and 0.0 <= tracking["p50"] <= tracking["p99"]
     # The stand-in (the autopilot) flew offboard, then Hold, then landed: the runtime flew it.

@@ -13,7 +13,7 @@ import pytest
 from runtime.faults import parse_injection
 from sim.sitl_session import SitlRequest, autopilot_request, merge_summary, run_sitl_cli
 
-from .test_sitl_session import EPISODE, FLIGHT, _trace
+from tests.sim.test_sitl_session import EPISODE, FLIGHT, _trace
 
 
 def _args(tmp_path, url, **extra):

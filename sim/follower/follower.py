@@ -46,6 +46,9 @@ log = logging.getLogger(__name__)
 POLL_S = 0.01
 WAIT_LOG_PERIOD_S = 5.0
 TRACE_PERIOD_S = 0.015  # every pose at the requested 50 Hz, with room for jitter
+# A frame rendered at a pose older than this would show the runtime a view that no longer is:
+# none is served (the runtime's stale-frame watchdog then trips, as for a dead camera).
+POSE_STALE_S = 0.5
 
 
 class FollowerNotReadyError(RuntimeError):
@@ -106,6 +109,7 @@ class WorldFollower:
         self._events_seen = 0
         self._feed: CameraFeed | None = None
         self._contact: dict | None = None
+        self._stale_frames = 0
 
     @property
     def link_port(self) -> int:
@@ -235,7 +239,15 @@ class WorldFollower:
         self._trace.sample(t_s, kin.pos_enu_m, kin.vel_enu_m_s, kin.yaw_enu_rad)
 
     def _publish(self, frame: Frame) -> None:
-        """Camera thread: after a contact every frame says so (the runtime's only way to know)."""
+        """Camera thread: no frame at a stale pose; after a contact every frame says so (the
+        runtime's only way to know)."""
+        kin = self._kin
+        age_s = (frame.t_capture_ns - kin.t_ns) * 1e-9
+        if age_s > POSE_STALE_S:
+            self._stale_frames += 1
+            if self._stale_frames == 1 or self._stale_frames % 100 == 0:
+                log.error("the autopilot's pose is %.1f s old: serving no frames (%d withheld so far)", age_s, self._stale_frames)
+            return
         contact = self._contact
         if contact is not None:
             frame = dataclasses.replace(frame, meta={**frame.meta, "contact": contact})
@@ -251,6 +263,7 @@ class WorldFollower:
         rate_hz = v.position_rate_hz()
         record["pose_stream"] = {"position_messages": v.position_messages, "attitude_messages": v.attitude_messages,
                                  "position_rate_hz": None if rate_hz is None else round(rate_hz, 1),
+                                 "frames_withheld_stale_pose": self._stale_frames,
                                  "bad_datagrams": self._link.bad_datagrams}  # fmt: skip
         write_json_atomic(self._config.trace_json, record)
         log.info("trace written to %s: %d poses, %d frames served, contact %s", self._config.trace_json,

@@ -118,6 +118,15 @@ def test_follower_renders_what_our_vehicle_renders_at_the_recorded_poses(tmp_pat
             assert "contact" not in frame.meta
             compared += 1
         assert compared == len(poses) >= 10
+        # The stream stops (a dead link): frames at the last pose stop too, and say so in the trace.
+        camera.settimeout(1.0)
+        deadline = time.monotonic() + 15.0
+        while True:
+            assert time.monotonic() < deadline, "frames kept coming at a pose that no longer arrives"
+            try:
+                _read_frame(camera)
+            except TimeoutError:
+                break
     finally:
         stop.set()
         thread.join(timeout=10.0)
@@ -126,3 +135,4 @@ def test_follower_renders_what_our_vehicle_renders_at_the_recorded_poses(tmp_pat
             camera.close()
     trace = json.loads(config.trace_json.read_text())
     assert trace["collision"] is None and trace["pose_stream"]["position_messages"] >= len(poses)
+    assert trace["pose_stream"]["frames_withheld_stale_pose"] > 0

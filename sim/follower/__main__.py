@@ -34,10 +34,14 @@ def parse_args(argv: list[str] | None = None) -> FollowerConfig:
     parser.add_argument("--episode-json", type=Path, required=True, help="where to write the episode description")
     parser.add_argument("--trace", type=Path, required=True, help="where to write the ground-truth trace at exit")
     parser.add_argument("--status-json", type=Path, help="keep the autopilot's mode log here, rewritten at every change")
-    parser.add_argument("--camera-hz", type=float, default=15.0, help="camera frame rate (default 15)")
-    parser.add_argument("--degrade", default="none", choices=sorted(DEGRADATIONS), help="depth degradation of the served frames")
-    parser.add_argument("--timeout-s", type=float, default=60.0, help="offboard time limit the judge applies (s, default 60)")
-    parser.add_argument("--ready-timeout-s", type=float, default=60.0, help="how long to wait for the autopilot (s, default 60)")
+    parser.add_argument("--camera-hz", type=float, default=FollowerConfig.camera_hz,
+                        help=f"camera frame rate (default {FollowerConfig.camera_hz:g})")
+    parser.add_argument("--degrade", default=FollowerConfig.degrade, choices=sorted(DEGRADATIONS),
+                        help="depth degradation of the served frames")
+    parser.add_argument("--timeout-s", type=float, default=FollowerConfig.timeout_s,
+                        help=f"offboard time limit the judge applies (s, default {FollowerConfig.timeout_s:g})")
+    parser.add_argument("--ready-timeout-s", type=float, default=FollowerConfig.ready_timeout_s,
+                        help=f"how long to wait for the autopilot (s, default {FollowerConfig.ready_timeout_s:g})")
     args = parser.parse_args(argv)
     try:
         host, port = parse_autopilot_url(args.autopilot, args.allow_remote)

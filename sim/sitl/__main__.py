@@ -45,7 +45,7 @@ def parse_args(argv: list[str] | None = None) -> SitlConfig:
     parser.add_argument("--pose-port", type=int,
                         help="a second MAVLink link to 127.0.0.1:POSE_PORT with its own streams (as PX4's GCS link to "
                         "14550), for the world follower (python -m sim.follower)")  # fmt: skip
-    parser.add_argument("--heading-deg", type=float, default=0.0,
+    parser.add_argument("--heading-deg", type=float, default=SitlConfig.heading_deg,
                         help="heading at spawn, degrees counter-clockwise from the room's +x (default 0: facing the goal "
                         "side; 90 = north, where PX4 SIH starts)")  # fmt: skip
     args = parser.parse_args(argv)

@@ -7,6 +7,9 @@ as PX4 reads MAV_FRAME_BODY_NED) is compared with the ground-truth velocity one 
 later (when the next command replaces it), rotated into V by the heading at that time.  The
 error is the norm of the difference (m/s); the summary gives its p50 / p99 / max, and the ratio
 of achieved to commanded forward speed over commands faster than FORWARD_RATIO_MIN_M_S.
+This is the raw difference, so an autopilot's own lag and gain deficit show in it; the
+watchdog's tracking trip (``runtime.tracking``) compares against a lagged reference instead, to
+catch a vehicle that does not follow at all.
 """
 
 from __future__ import annotations

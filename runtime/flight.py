@@ -2,7 +2,8 @@
 
 - camera task: the source's frames, checked (``runtime.camera.validate``: unfit ones are counted
   and dropped, so garbage trips the watchdog as "no valid frame") -> the latest-frame slot (+ the
-  flight log);
+  flight log); a frame whose meta reports a contact in a simulated world (``sim.follower``)
+  trips ``sim_contact``;
 - policy task: on each new frame, preprocess (runtime.contract.images), observation state, ONNX
   step with the GRU hidden state, clip, action -> velocity (ActionLimits), send through the
   command gate; deadline = the control period (missed deadlines counted; the watchdog trips

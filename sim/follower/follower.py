@@ -7,6 +7,8 @@ shares), then renders the camera at the followed pose (mount transform of ``sim.
 serves it on the same camera link as our own vehicle (``sim.sitl.camera_server``).  Every pose is
 judged (:class:`Judge`); after a contact, every frame carries ``meta["contact"]`` so the runtime
 learns of it over the camera link (the autopilot flies on in its empty world and cannot tell).
+No frame is served at a pose older than POSE_STALE_S (a dead pose link must look like a dead
+camera to the runtime, not like a vehicle hovering still).
 On stop it writes the trace JSON in our vehicle's format plus the verdict, the placement and
 the pose-stream counts.
 

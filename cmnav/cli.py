@@ -277,7 +277,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="fly one episode: SITL vehicle + the real runtime as separate processes",
         description="Start the SITL vehicle and the runtime, arm, take off, fly the model in "
         "offboard until success (within 1 m of the goal), crash or timeout, then hover, land and "
-        "stop both processes.  Writes the MCAP flight log and a top-view trajectory plot.",
+        "stop both processes.  Writes the MCAP flight log and a top-view trajectory plot.  With --autopilot "
+        "it flies an external autopilot (PX4 SITL) instead of our vehicle: the camera world follows its pose "
+        "(docs/px4-sitl.md).",
     )
     sitl.add_argument("--model", required=True, help="ONNX model with the runtime's contract")
     sitl.add_argument("--level", type=int, default=0, help="curriculum level = number of obstacles (default 0)")
@@ -294,6 +296,14 @@ def build_parser() -> argparse.ArgumentParser:
         "camera-blackout, telemetry-loss, pilot-takeover, offboard-refused@0, inference-overrun, nan-action, "
         "geofence, runtime-kill, vehicle-stuck; the summary then lists each fault's trip, detection time and stop time",
     )  # fmt: skip
+    sitl.add_argument("--autopilot", metavar="URL",
+                      help="fly an external autopilot (PX4 SITL) instead of our vehicle: the camera world follows its "
+                      "pose from this MAVLink address, udp://127.0.0.1:14550 for PX4's GCS link (docs/px4-sitl.md)")  # fmt: skip
+    sitl.add_argument("--offboard-port", type=int,
+                      help="with --autopilot: UDP port on 127.0.0.1 of the autopilot's offboard link the runtime flies "
+                      "on (default 14540, PX4 SITL's)")  # fmt: skip
+    sitl.add_argument("--allow-remote", action="store_true",
+                      help="with --autopilot: accept a host other than 127.0.0.1 (a bench setup; default: refused)")
     sitl.set_defaults(func=_cmd_sitl)
 
     fly = sub.add_parser(

@@ -2,7 +2,8 @@
 
 - camera task: the source's frames, checked (``runtime.camera.validate``: unfit ones are counted
   and dropped, so garbage trips the watchdog as "no valid frame") -> the latest-frame slot (+ the
-  flight log);
+  flight log); a frame whose meta reports a contact in a simulated world (``sim.follower``)
+  trips ``sim_contact``;
 - policy task: on each new frame, preprocess (runtime.contract.images), observation state, ONNX
   step with the GRU hidden state, clip, action -> velocity (ActionLimits), send through the
   command gate; deadline = the control period (missed deadlines counted; the watchdog trips
@@ -258,6 +259,17 @@ class FlightLoop:
             self.frames.put(frame)
             if self.recorder is not None:
                 self.recorder.log_frame(frame)
+            await self._check_sim_contact(frame)
+
+    async def _check_sim_contact(self, frame: Frame) -> None:
+        """A SITL world that follows an external autopilot reports a contact in the frame's meta
+        (``sim.follower``): end the episode as any trip does (hover, then Hold)."""
+        contact = frame.meta.get("contact") if isinstance(frame.meta, dict) else None
+        if contact is None or not self.watchdog.supervising or self.watchdog.tripped is not None:
+            return
+        what = contact.get("what", "?") if isinstance(contact, dict) else str(contact)
+        now = time.monotonic_ns()
+        await self.watchdog.trip(TripCause.SIM_CONTACT, f"the simulated world reports contact: {what}", frame.t_capture_ns, now)
 
     async def _state_log_task(self) -> None:
         status_seq_logged = 0

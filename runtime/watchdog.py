@@ -62,6 +62,9 @@ class TripCause(str, Enum):
     TRACKING = "tracking"  # the vehicle does not follow its velocity commands
     ATTITUDE = "attitude"  # tilted past tilt_max_deg: flipped or tumbling
     VEHICLE_FAULT = "vehicle_fault"  # the autopilot says so: CRITICAL STATUSTEXT, disarmed in flight
+    # The simulated world says the vehicle touched something (SITL camera link, frame meta
+    # "contact"): an external autopilot in SITL flies on through the room it cannot see.
+    SIM_CONTACT = "sim_contact"
 
 
 class Response(str, Enum):

@@ -27,7 +27,7 @@ import socket
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +36,9 @@ from runtime.contract.constants import GOAL_REACHED_RADIUS_M
 from runtime.faults import FaultKind, FaultSite, Injection, InjectionError, parse_injection
 
 from .fault_report import fault_records, runtime_trip_after, vehicle_failsafe_trip
+from .follower.pose_link import AutopilotUrlError, parse_autopilot_url
 from .plot import plot_top_view
+from .tracking import flight_tracking_error
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +71,11 @@ class SitlRequest:
     runtime_cpus: tuple[int, ...] = ()
     vehicle_cpus: tuple[int, ...] = ()
     runtime_threads: int = 0
+    # An external autopilot (PX4 SITL): the world follows its pose from this URL (sim.follower)
+    # and the runtime flies it on its offboard link, 127.0.0.1:offboard_port (PX4: 14540).
+    autopilot_url: str | None = None
+    offboard_port: int = 14540
+    allow_remote: bool = False
 
     def injections_at(self, site: FaultSite) -> list[str]:
         """``--inject`` arguments for the process at ``site``."""
@@ -144,31 +151,39 @@ def run_sitl(request: SitlRequest) -> dict:
     episode_path, trace_path, summary_path = run_dir / "episode.json", run_dir / "trace.json", run_dir / "runtime_summary.json"
     status_path = run_dir / "vehicle_status.json"
     sim_log, runtime_log = run_dir / "sim.log", run_dir / "runtime.log"
-    mavlink_port, camera_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)
+    camera_port = free_port(socket.SOCK_STREAM)
+    world_files = ["--level", str(request.level), "--seed", str(request.seed), "--degrade", request.degrade,
+                   "--episode-json", str(episode_path), "--trace", str(trace_path), "--status-json", str(status_path)]  # fmt: skip
+    if request.autopilot_url is None:
+        mavlink_port, world_name, ready_timeout_s = free_port(socket.SOCK_DGRAM), "the SITL vehicle", VEHICLE_READY_TIMEOUT_S
+        world_cmd = [sys.executable, "-m", "sim.sitl", "--mavlink-port", str(mavlink_port), "--camera-port", str(camera_port),
+                     *world_files, *request.injections_at(FaultSite.VEHICLE)]  # fmt: skip
+    else:
+        # The follower waits for the autopilot to be armable; its own error names what is missing.
+        mavlink_port, world_name, ready_timeout_s = request.offboard_port, "the world follower", VEHICLE_READY_TIMEOUT_S + 5.0
+        world_cmd = [sys.executable, "-m", "sim.follower", "--autopilot", request.autopilot_url,
+                     *(["--allow-remote"] if request.allow_remote else []), "--camera-port", str(camera_port), *world_files,
+                     "--timeout-s", str(request.timeout_s), "--ready-timeout-s", str(VEHICLE_READY_TIMEOUT_S)]  # fmt: skip
     env = dict(os.environ, PYTHONUNBUFFERED="1")
 
     t_launch = time.monotonic()
     t_kill_s = None
     with open(sim_log, "w") as sim_out:
         vehicle = subprocess.Popen(
-            [sys.executable, "-m", "sim.sitl", "--mavlink-port", str(mavlink_port), "--camera-port", str(camera_port),
-             "--level", str(request.level), "--seed", str(request.seed), "--degrade", request.degrade,
-             "--episode-json", str(episode_path), "--trace", str(trace_path), "--status-json", str(status_path),
-             *request.injections_at(FaultSite.VEHICLE)],
-            stdout=sim_out, stderr=subprocess.STDOUT, env=env,
+            world_cmd, stdout=sim_out, stderr=subprocess.STDOUT, env=env,
             # In the child before exec: every thread the vehicle starts inherits the set.
             preexec_fn=(lambda: os.sched_setaffinity(0, request.vehicle_cpus)) if request.vehicle_cpus else None,
         )  # fmt: skip
     runtime = None
     try:
-        episode = _wait_for_file(episode_path, vehicle, VEHICLE_READY_TIMEOUT_S, "the SITL vehicle", sim_log)
-        log.info("SITL vehicle ready (pid %d): level %d seed %d, goal %s m from home",
+        episode = _wait_for_file(episode_path, vehicle, ready_timeout_s, world_name, sim_log)
+        log.info("%s ready (pid %d): level %d seed %d, goal %s m from home", world_name,
                  vehicle.pid, request.level, request.seed, episode["goal_rel_home_enu_m"])  # fmt: skip
         with open(runtime_log, "w") as runtime_out:
             runtime = subprocess.Popen(
                 [sys.executable, "-m", "runtime.sitl_flight", "--mavlink-port", str(mavlink_port),
                  "--camera-port", str(camera_port), "--model", str(request.model_path),
-                 "--goal-rel-home", ",".join(f"{v:.4f}" for v in episode["goal_rel_home_enu_m"]),
+                 "--goal-rel-home=" + ",".join(f"{v:.4f}" for v in episode["goal_rel_home_enu_m"]),  # "=": may start with "-"
                  "--takeoff-alt-m", f"{episode['takeoff_alt_m']:.3f}", "--timeout-s", str(request.timeout_s),
                  "--log-dir", str(run_dir), "--summary", str(summary_path), *request.injections_at(FaultSite.RUNTIME),
                  "--cpu-affinity", ",".join(map(str, request.runtime_cpus)), "--intra-op-threads", str(request.runtime_threads)],
@@ -181,10 +196,10 @@ def run_sitl(request: SitlRequest) -> dict:
     finally:
         if runtime is not None:
             stop_process(runtime, "runtime")
-        stop_process(vehicle, "SITL vehicle")
+        stop_process(vehicle, world_name)
 
     if not trace_path.exists():
-        raise SitlError(f"the SITL vehicle wrote no trace; its log ({sim_log}):\n{_tail(sim_log)}")
+        raise SitlError(f"{world_name} wrote no trace; its log ({sim_log}):\n{_tail(sim_log)}")
     if t_kill_s is not None:
         # Killed: the runtime could write no summary; its MCAP log is cut short but readable.
         log_path = next(run_dir.glob("*.mcap"), None)
@@ -297,6 +312,11 @@ def merge_summary(
     if request.runtime_cpus or request.vehicle_cpus:
         summary["pinning"] = {"runtime_cpus": flight.get("cpu_affinity"), "vehicle_cpus": list(request.vehicle_cpus),
                               "runtime_intra_op_threads": request.runtime_threads}  # fmt: skip
+    summary["tracking_error_m_s"] = flight_tracking_error(flight.get("log"), trace)
+    if request.autopilot_url is not None:
+        summary["autopilot"] = request.autopilot_url
+        summary["ground_truth"] = trace.get("verdict")
+        summary["pose_stream"] = trace.get("pose_stream")
     if request.injections:
         summary["faults"] = fault_records(request.injections, trace, flight, t_kill_s)
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
@@ -314,6 +334,20 @@ def crash_timing(collision: dict, flight: dict, t_offboard: float | None) -> tup
     return time_s, None if trip is None else round(1000.0 * (t_trip - t_crash), 1)
 
 
+def autopilot_request(request: SitlRequest, url: str, offboard_port: int | None, allow_remote: bool) -> SitlRequest:
+    """``request`` flown against an external autopilot: ValueError (naming the option) for a URL
+    it refuses (another host without ``allow_remote``), a bad port, or faults only our vehicle
+    can inject."""
+    parse_autopilot_url(url, allow_remote)
+    port = SitlRequest.offboard_port if offboard_port is None else offboard_port
+    if not 0 < port < 65536:
+        raise ValueError(f"--offboard-port {port} must be a UDP port in 1..65535 (PX4 SITL's offboard link: 14540)")
+    vehicle_faults = [str(i) for i in request.injections if i.site == FaultSite.VEHICLE]
+    if vehicle_faults:
+        raise ValueError(f"--inject {', '.join(vehicle_faults)}: only our SITL vehicle injects these, not an external autopilot")
+    return replace(request, autopilot_url=url, offboard_port=port, allow_remote=allow_remote)
+
+
 def run_sitl_cli(args: argparse.Namespace) -> int:
     """Entry of ``cmnav sitl``: exit 0 on success, 1 on crash/timeout/aborted, 2 if it could not run."""
     try:
@@ -322,6 +356,12 @@ def run_sitl_cli(args: argparse.Namespace) -> int:
         print(f"cmnav sitl: {err}", file=sys.stderr)
         return 2
     request = SitlRequest(Path(args.model), args.level, args.seed, args.timeout, Path(args.out), injections, args.degrade)
+    if getattr(args, "autopilot", None) is not None:
+        try:
+            request = autopilot_request(request, args.autopilot, args.offboard_port, args.allow_remote)
+        except (AutopilotUrlError, ValueError) as err:
+            print(f"cmnav sitl: {err}", file=sys.stderr)
+            return 2
     try:
         summary = run_sitl(request)
     except SitlError as err:

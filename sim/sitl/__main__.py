@@ -25,7 +25,7 @@ def parse_args(argv: list[str] | None = None) -> SitlConfig:
         "Writes the episode JSON once ready and the trace JSON on SIGTERM/SIGINT.",
     )
     parser.add_argument("--mavlink-port", type=int, required=True, help="UDP port the MAVLink client listens on")
-    parser.add_argument("--camera-port", type=int, required=True, help="TCP port to serve camera frames on")
+    parser.add_argument("--camera-port", type=int, help="TCP port to serve camera frames on (needed unless --stand-in)")
     parser.add_argument("--level", type=int, required=True, help="curriculum level = number of obstacles")
     parser.add_argument("--seed", type=int, required=True, help="world seed")
     parser.add_argument("--episode-json", type=Path, required=True, help="where to write the episode description")
@@ -39,12 +39,22 @@ def parse_args(argv: list[str] | None = None) -> SitlConfig:
     parser.add_argument("--degrade", default="none", choices=["none", "projector-off"],
                         help="depth degradation of the served frames (projector-off: a D455 without its IR projector)")
     parser.add_argument("--status-json", type=Path, help="keep the mode log here, rewritten at every mode change")
+    parser.add_argument("--stand-in", action="store_true",
+                        help="stand in for an external autopilot (PX4 SIH) in tests of the world follower: no camera "
+                        "server, no room to hit (only the floor)")  # fmt: skip
+    parser.add_argument("--pose-port", type=int,
+                        help="a second MAVLink link to 127.0.0.1:POSE_PORT with its own streams (as PX4's GCS link to "
+                        "14550), for the world follower (python -m sim.follower)")  # fmt: skip
+    parser.add_argument("--heading-deg", type=float, default=SitlConfig.heading_deg,
+                        help="heading at spawn, degrees counter-clockwise from the room's +x (default 0: facing the goal "
+                        "side; 90 = north, where PX4 SIH starts)")  # fmt: skip
     args = parser.parse_args(argv)
     try:
         injections = tuple(parse_injection(text, [FaultSite.VEHICLE]) for text in args.inject)
         config = SitlConfig(
             args.mavlink_port, args.camera_port, args.level, args.seed, args.episode_json, args.trace,
-            args.physics_hz, args.camera_hz, injections, args.status_json, args.degrade,
+            args.physics_hz, args.camera_hz, injections, args.status_json, args.degrade, args.stand_in, args.pose_port,
+            args.heading_deg,
         )  # fmt: skip
         config.validate()
     except ValueError as err:  # InjectionError is one

@@ -41,12 +41,16 @@ class Airframe:
         yaw_enu_rad: float = 0.0,
         params: DynamicsParams = DynamicsParams(ground_contact=False),
         radius_m: float = DEFAULT_VEHICLE_RADIUS_M,
+        world_contact: bool = True,
     ) -> None:
+        """``world_contact`` False: walls, ceiling and obstacles are not there for this vehicle
+        (only the floor is), as for an external autopilot that knows no room."""
         if world.batch_size != 1:
             raise ValueError(f"an airframe flies in one world, got a batch of {world.batch_size}")
         self._world = world
         self._dynamics = QuadrotorDynamics(params)
         self._radius_m = radius_m
+        self._world_contact = world_contact
         home = np.array([spawn_xy_enu_m[0], spawn_xy_enu_m[1], LANDING_GEAR_HEIGHT_M], dtype=np.float64)
         self.home_enu_m = home
         self._state = QuadState.at_rest(torch.as_tensor(home, dtype=torch.float32).reshape(1, 3), yaw_enu_rad)
@@ -107,9 +111,9 @@ class Airframe:
         """Floor touch-down (or crash), then walls, ceiling and obstacles."""
         pos = self._state.pos_enu_m
         if float(pos[0, 2]) <= LANDING_GEAR_HEIGHT_M:
-            speed = float(torch.linalg.vector_norm(self._state.vel_enu_m_s[0]))
-            if speed > TOUCHDOWN_MAX_SPEED_M_S:
-                return f"floor at {speed:.1f} m/s"
+            crash = floor_crash(float(pos[0, 2]), float(torch.linalg.vector_norm(self._state.vel_enu_m_s[0])))
+            if crash is not None:
+                return crash
             yaw = float(self._state.yaw_enu_rad()[0])
             rest = pos.clone()
             rest[0, 2] = LANDING_GEAR_HEIGHT_M
@@ -118,21 +122,37 @@ class Airframe:
         return self._obstacle_hit()
 
     def _obstacle_hit(self) -> str | None:
-        pos = self._state.pos_enu_m
-        size = self._world.room_size_m
-        faces = {
-            "wall x=0": pos[0, 0],
-            f"wall x={float(size[0, 0]):.1f}": size[0, 0] - pos[0, 0],
-            "wall y=0": pos[0, 1],
-            f"wall y={float(size[0, 1]):.1f}": size[0, 1] - pos[0, 1],
-            "ceiling": size[0, 2] - pos[0, 2],
-        }
-        for name, clearance_m in faces.items():
-            if float(clearance_m) < self._radius_m:
-                return name
-        if self._world.num_slots:
-            distances = box_signed_distance_m(self._world, pos)[0]
-            nearest = int(torch.argmin(distances))
-            if float(distances[nearest]) < self._radius_m:
-                return f"obstacle {nearest}"
-        return None
+        if not self._world_contact:
+            return None
+        return room_contact(self._world, self._state.pos_enu_m, self._radius_m)
+
+
+def room_contact(world: WorldBatch, pos_enu_m: torch.Tensor, radius_m: float = DEFAULT_VEHICLE_RADIUS_M) -> str | None:
+    """What a vehicle of ``radius_m`` at ``pos_enu_m`` [1, 3] (world ENU, m) touches: a wall, the
+    ceiling or an obstacle (its name), or None.  The floor is ground, judged apart
+    (:func:`floor_crash`)."""
+    size = world.room_size_m
+    faces = {
+        "wall x=0": pos_enu_m[0, 0],
+        f"wall x={float(size[0, 0]):.1f}": size[0, 0] - pos_enu_m[0, 0],
+        "wall y=0": pos_enu_m[0, 1],
+        f"wall y={float(size[0, 1]):.1f}": size[0, 1] - pos_enu_m[0, 1],
+        "ceiling": size[0, 2] - pos_enu_m[0, 2],
+    }
+    for name, clearance_m in faces.items():
+        if float(clearance_m) < radius_m:
+            return name
+    if world.num_slots:
+        distances = box_signed_distance_m(world, pos_enu_m)[0]
+        nearest = int(torch.argmin(distances))
+        if float(distances[nearest]) < radius_m:
+            return f"obstacle {nearest}"
+    return None
+
+
+def floor_crash(height_m: float, speed_m_s: float) -> str | None:
+    """A floor contact (body origin at or below LANDING_GEAR_HEIGHT_M) faster than
+    TOUCHDOWN_MAX_SPEED_M_S is a crash (its name); slower is a touch-down (None)."""
+    if height_m <= LANDING_GEAR_HEIGHT_M and speed_m_s > TOUCHDOWN_MAX_SPEED_M_S:
+        return f"floor at {speed_m_s:.1f} m/s"
+    return None

@@ -248,12 +248,15 @@ class Autopilot:
         c = self._commander
         return AutopilotStatus(c.armed, c.mode, c.landed_state, c.armable, c.crashed)
 
-    def publish(self, kin: Kinematics, t_s: float) -> list[Event]:
-        """Send the streams due now and a STATUSTEXT per new event; return those events."""
+    def publish(self, kin: Kinematics, t_s: float, events: list[Event] | None = None) -> list[Event]:
+        """Send the streams due now and a STATUSTEXT per event; return those events.
+        ``events`` None: the commander's new events (drained); a second link of the same vehicle
+        passes the ones the first link drained, as PX4 sends its STATUSTEXTs on every link."""
         status = self.status()
         for msg_id in self._streams.due(t_s):
             self._endpoint.send(self._telemetry.build(msg_id, kin, status))
-        events = self._commander.drain_events()
+        if events is None:
+            events = self._commander.drain_events()
         for event in events:
             self._endpoint.send(mavlink.MAVLink_statustext_message(event.severity, event.text[:STATUSTEXT_MAX_CHARS].encode()))
         return events

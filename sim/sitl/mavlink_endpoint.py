@@ -82,21 +82,9 @@ class MavlinkEndpoint:
         return messages
 
     def _parse(self, data: bytes) -> list[mavlink.MAVLink_message]:
-        parser = mavlink.MAVLink(None)
-        parser.robust_parsing = True
-        try:
-            parsed = parser.parse_buffer(data) or []
-        except mavlink.MAVError as err:
-            self._count_bad(f"unparseable datagram of {len(data)} bytes ({err})")
-            return []
-        good = []
-        for msg in parsed:
-            if isinstance(msg, mavlink.MAVLink_bad_data):
-                self._count_bad(f"bad data in a {len(data)}-byte datagram ({msg.reason})")
-            elif isinstance(msg, mavlink.MAVLink_unknown):
-                log.debug("ignoring message id %d not in the common dialect", msg.get_msgId())
-            else:
-                good.append(msg)
+        good, problems = parse_datagram(data)
+        for problem in problems:
+            self._count_bad(problem)
         return good
 
     def _count_bad(self, what: str) -> None:
@@ -106,3 +94,23 @@ class MavlinkEndpoint:
 
     def close(self) -> None:
         self._sock.close()
+
+
+def parse_datagram(data: bytes) -> tuple[list[mavlink.MAVLink_message], list[str]]:
+    """The valid MAVLink messages in one datagram (parsed on its own, so garbage cannot
+    desynchronise the next), and a description of each bad part.  Never raises."""
+    parser = mavlink.MAVLink(None)
+    parser.robust_parsing = True
+    try:
+        parsed = parser.parse_buffer(data) or []
+    except mavlink.MAVError as err:
+        return [], [f"unparseable datagram of {len(data)} bytes ({err})"]
+    good, problems = [], []
+    for msg in parsed:
+        if isinstance(msg, mavlink.MAVLink_bad_data):
+            problems.append(f"bad data in a {len(data)}-byte datagram ({msg.reason})")
+        elif isinstance(msg, mavlink.MAVLink_unknown):
+            log.debug("ignoring message id %d not in the common dialect", msg.get_msgId())
+        else:
+            good.append(msg)
+    return good, problems

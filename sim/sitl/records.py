@@ -65,16 +65,18 @@ class Trace:
     t_s: list[float] = field(default_factory=list)
     pos_enu_m: list[list[float]] = field(default_factory=list)
     vel_enu_m_s: list[list[float]] = field(default_factory=list)
+    yaw_enu_rad: list[float] = field(default_factory=list)
     collision: dict | None = None
     events: list[tuple[float, str]] = field(default_factory=list)
 
-    def sample(self, t_s: float, pos_enu_m: np.ndarray, vel_enu_m_s: np.ndarray) -> None:
-        """Record position (world ENU, m) and velocity (m/s) if ``period_s`` has passed since the
-        last sample."""
+    def sample(self, t_s: float, pos_enu_m: np.ndarray, vel_enu_m_s: np.ndarray, yaw_enu_rad: float = 0.0) -> None:
+        """Record position (world ENU, m), velocity (m/s) and heading (rad, counter-clockwise
+        from east) if ``period_s`` has passed since the last sample."""
         if not self.t_s or t_s - self.t_s[-1] >= self.period_s:
             self.t_s.append(t_s)
             self.pos_enu_m.append([round(float(v), 4) for v in pos_enu_m])
             self.vel_enu_m_s.append([round(float(v), 4) for v in vel_enu_m_s])
+            self.yaw_enu_rad.append(round(float(yaw_enu_rad), 5))
 
     def record_collision(self, t_s: float, pos_enu_m: np.ndarray, what: str) -> None:
         if self.collision is None:
@@ -91,6 +93,7 @@ class Trace:
             "t_s": self.t_s,
             "pos_enu_m": self.pos_enu_m,
             "vel_enu_m_s": self.vel_enu_m_s,
+            "yaw_enu_rad": self.yaw_enu_rad,
             "collision": self.collision,
             "mode_log": [[t, mode] for t, mode in mode_log],
             "events": [[t, text] for t, text in self.events],

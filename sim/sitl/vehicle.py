@@ -11,6 +11,7 @@ own thread from the latest pose, and the frame server sends from its own threads
 from __future__ import annotations
 
 import logging
+import math
 import select
 import threading
 import time
@@ -54,11 +55,12 @@ STUCK_COMMAND = VelocityCommand(vel_enu_m_s=np.zeros(3), yaw_rate_enu_rad_s=0.0)
 @dataclass(frozen=True)
 class SitlConfig:
     """One SITL vehicle: ports on 127.0.0.1, the world (curriculum level, seed), output files,
-    physics and camera rates (Hz), the faults to inject on itself, and where to keep a live
-    status (mode log) that others can poll (None: nowhere)."""
+    physics and camera rates (Hz), the faults to inject on itself, where to keep a live status
+    (mode log) that others can poll (None: nowhere), whether it stands in for an external
+    autopilot, and its second MAVLink link's port."""
 
     mavlink_port: int
-    camera_port: int
+    camera_port: int | None
     level: int
     seed: int
     episode_json: Path
@@ -68,19 +70,32 @@ class SitlConfig:
     injections: tuple[Injection, ...] = ()
     status_json: Path | None = None
     degrade: str = "none"  # one of DEGRADATIONS
+    # A stand-in for an external autopilot (PX4 SIH) in tests of the world follower: no camera
+    # server, no room (walls, ceiling, obstacles) to hit, only the floor.
+    stand_in: bool = False
+    # A second MAVLink link (as PX4's GCS link to 14550), to 127.0.0.1:pose_port; None = none.
+    pose_port: int | None = None
+    # Heading at spawn, degrees counter-clockwise from the room's +x (PX4 SIH starts facing
+    # north: 90 in ENU); 0 faces the goal side, as in training.
+    heading_deg: float = 0.0
 
     def validate(self) -> None:
         """Raise ValueError naming the bad option."""
         if self.degrade not in DEGRADATIONS:
             raise ValueError(f"--degrade {self.degrade!r} must be one of {sorted(DEGRADATIONS)}")
+        if not -360.0 <= self.heading_deg <= 360.0:
+            raise ValueError(f"--heading-deg {self.heading_deg} must be in [-360, 360]")
         if self.level < 0:
             raise ValueError(f"--level {self.level} must be >= 0")
         if not 10.0 <= self.physics_hz <= 1000.0:
             raise ValueError(f"--physics-hz {self.physics_hz} must be in [10, 1000]")
         if not 0.0 < self.camera_hz <= 60.0:
             raise ValueError(f"--camera-hz {self.camera_hz} must be in (0, 60]")
-        for name, port in (("--mavlink-port", self.mavlink_port), ("--camera-port", self.camera_port)):
-            if not 0 < port < 65536:
+        ports = [("--mavlink-port", self.mavlink_port), ("--camera-port", self.camera_port), ("--pose-port", self.pose_port)]
+        if self.camera_port is None and not self.stand_in:
+            raise ValueError("--camera-port is needed (only a --stand-in vehicle runs without a camera)")
+        for name, port in ports:
+            if port is not None and not 0 < port < 65536:
                 raise ValueError(f"{name} {port} must be a port number in 1..65535")
 
 
@@ -94,8 +109,8 @@ class SitlVehicle:
         t_s = self._t_boot_ns * 1e-9
         self._world = make_worlds(config.level, config.seed, 1)
         start = self._world.start_m[0].double().numpy()
-        # Facing +x, the goal side of the room, as in training.
-        self._airframe = Airframe(self._world, start[:2], yaw_enu_rad=0.0)
+        self._airframe = Airframe(self._world, start[:2], yaw_enu_rad=math.radians(config.heading_deg),
+                                  world_contact=not config.stand_in)  # fmt: skip
         self._home_enu_m = self._airframe.home_enu_m
         self._kin = self._airframe.kinematics(self._t_boot_ns)
         geo = GeodeticHome()
@@ -106,54 +121,66 @@ class SitlVehicle:
             offboard_allowed=self._faults.offboard_allowed if self._faults.refuses_offboard else None,
         )  # fmt: skip
         self._modes_reported = 0
-        self._server = FrameServer(config.camera_port)
+        self._server = None if config.stand_in else FrameServer(config.camera_port)
         self._endpoint = MavlinkEndpoint(config.mavlink_port)
+        telemetry = Telemetry(self._home_enu_m, geo, self._t_boot_ns)
         self._autopilot = Autopilot(
-            self._endpoint,
-            self._commander,
-            params,
-            Telemetry(self._home_enu_m, geo, self._t_boot_ns),
-            StreamScheduler(t_s, max_rate_hz=config.physics_hz),
-            geo,
-            self._t_boot_ns,
-        )
+            self._endpoint, self._commander, params, telemetry, StreamScheduler(t_s, max_rate_hz=config.physics_hz),
+            geo, self._t_boot_ns,
+        )  # fmt: skip
+        # PX4 runs one MAVLink instance per link, each with its own streams; the commander is shared.
+        self._pose_endpoint = None if config.pose_port is None else MavlinkEndpoint(config.pose_port)
+        self._pose_autopilot = None if self._pose_endpoint is None else Autopilot(
+            self._pose_endpoint, self._commander, params, telemetry, StreamScheduler(t_s, max_rate_hz=config.physics_hz),
+            geo, self._t_boot_ns,
+        )  # fmt: skip
         self._trace = Trace()
         # The render thread reads self._kin: it is replaced each tick, never mutated, so the
         # reference it gets is always one consistent state.
-        publish = self._publish_faulty if self._faults.camera_faults else self._server.publish
-        self._feed = CameraFeed(self._world, CameraModel(), lambda: self._kin, publish, config.camera_hz,
-                                DEGRADATIONS[config.degrade], seed=config.seed)  # fmt: skip
+        self._feed = None
+        if self._server is not None:
+            publish = self._publish_faulty if self._faults.camera_faults else self._server.publish
+            self._feed = CameraFeed(self._world, CameraModel(), lambda: self._kin, publish, config.camera_hz,
+                                    DEGRADATIONS[config.degrade], seed=config.seed)  # fmt: skip
         self.overruns = 0
 
     def run(self, stop: threading.Event) -> None:
         """Serve until ``stop`` is set, then close everything and write the trace."""
         try:
-            self._feed.start()
-            self._server.start()
+            if self._feed is not None:
+                self._feed.start()
+                self._server.start()
             self._write_episode()
             self._loop(stop)
         finally:
-            self._feed.stop()
-            self._server.close()
+            if self._feed is not None:
+                self._feed.stop()
+                self._server.close()
             self._endpoint.close()
+            if self._pose_endpoint is not None:
+                self._pose_endpoint.close()
             self._write_trace()
 
     def _write_episode(self) -> None:
         c = self._config
         record = episode_record(
-            self._world, self._home_enu_m, c.level, c.seed, c.mavlink_port, self._server.port, self._endpoint.local_port
-        )
+            self._world, self._home_enu_m, c.level, c.seed, c.mavlink_port, self._server and self._server.port,
+            self._endpoint.local_port,
+        )  # fmt: skip
+        record["pose_port"] = c.pose_port
+        record["stand_in"] = c.stand_in
         write_json_atomic(c.episode_json, record)
         log.info("episode written to %s: goal %s m from home", c.episode_json, [round(v, 2) for v in record["goal_rel_home_enu_m"]])
 
     def _write_trace(self) -> None:
-        record = self._trace.to_record(self._commander.mode_log, self._server.served(), self._faults.injected)
+        served = self._server.served() if self._server is not None else []
+        record = self._trace.to_record(self._commander.mode_log, served, self._faults.injected)
         write_json_atomic(self._config.trace_json, record)
         log.info(
             "trace written to %s: %d positions, %d frames served, collision %s; %d physics overruns, "
             "%d camera deadlines skipped",
             self._config.trace_json, len(record["t_s"]), record["frames_served"], record["collision"], self.overruns,
-            self._feed.skipped_deadlines,
+            self._feed.skipped_deadlines if self._feed is not None else 0,
         )  # fmt: skip
 
     def _loop(self, stop: threading.Event) -> None:
@@ -162,9 +189,9 @@ class SitlVehicle:
         while not stop.is_set():
             now = time.monotonic()
             if now < next_s:
-                readable, _, _ = select.select([self._endpoint], [], [], next_s - now)
+                readable, _, _ = select.select(self._endpoints(), [], [], next_s - now)
                 if readable:
-                    self._receive()
+                    self._receive(readable)
                 continue
             self._tick(period_s)
             next_s += period_s
@@ -174,10 +201,15 @@ class SitlVehicle:
                 log.warning("physics loop %.0f ms behind real time; re-phasing (overrun %d)", lag_s * 1e3, self.overruns)
                 next_s = time.monotonic()
 
-    def _receive(self) -> None:
+    def _endpoints(self) -> list[MavlinkEndpoint]:
+        return [self._endpoint] if self._pose_endpoint is None else [self._endpoint, self._pose_endpoint]
+
+    def _receive(self, readable: list[MavlinkEndpoint]) -> None:
         t_s = time.monotonic()
-        for msg in self._endpoint.receive():
-            self._autopilot.handle(msg, self._kin, t_s)
+        for endpoint, autopilot in ((self._endpoint, self._autopilot), (self._pose_endpoint, self._pose_autopilot)):
+            if endpoint in readable:
+                for msg in endpoint.receive():
+                    autopilot.handle(msg, self._kin, t_s)
 
     def _tick(self, dt_s: float) -> None:
         t_ns = time.monotonic_ns()
@@ -192,8 +224,11 @@ class SitlVehicle:
         if hit is not None:
             self._commander.crash(t_s, hit)
             self._trace.record_collision(t_s, self._kin.pos_enu_m, hit)
-        self._trace.record_events(self._autopilot.publish(self._kin, t_s))
-        self._trace.sample(t_s, self._kin.pos_enu_m, self._kin.vel_enu_m_s)
+        events = self._autopilot.publish(self._kin, t_s)
+        if self._pose_autopilot is not None:
+            self._pose_autopilot.publish(self._kin, t_s, events)
+        self._trace.record_events(events)
+        self._trace.sample(t_s, self._kin.pos_enu_m, self._kin.vel_enu_m_s, self._kin.yaw_enu_rad)
         if len(self._commander.mode_log) != self._modes_reported:
             self._write_status()
 
@@ -203,6 +238,8 @@ class SitlVehicle:
         if self._faults.pilot_takes_over(t_s):
             self._commander.rc_mode_switch(t_s, self._kin, POSCTL)
         self._endpoint.tx_silent = self._faults.telemetry_lost(t_s)
+        if self._pose_endpoint is not None:
+            self._pose_endpoint.tx_silent = self._endpoint.tx_silent
 
     def _publish_faulty(self, frame: Frame) -> None:
         """Camera thread: publish what the faulted camera delivers instead of ``frame``."""

@@ -45,3 +45,21 @@ def test_runtime_faults_are_refused_here(capsys):
     with pytest.raises(SystemExit) as exit_info:
         parse_args(BASE + ["--inject", "nan-action@2"])
     assert exit_info.value.code == 2 and "unknown fault kind 'nan-action' here" in capsys.readouterr().err
+
+
+def test_stand_in_needs_no_camera_port_and_takes_a_pose_link():
+    base = [a for a in BASE if a not in ("--camera-port", "5600")]
+    config = parse_args(base + ["--stand-in", "--pose-port", "14550", "--heading-deg", "90"])
+    assert config.stand_in and config.camera_port is None and config.pose_port == 14550 and config.heading_deg == 90.0
+    assert parse_args(BASE).pose_port is None and not parse_args(BASE).stand_in
+
+
+@pytest.mark.parametrize(
+    "argv, named",
+    [([a for a in BASE if a not in ("--camera-port", "5600")], "--camera-port"),
+     (BASE + ["--pose-port", "0"], "--pose-port"), (BASE + ["--heading-deg", "400"], "--heading-deg")],
+)  # fmt: skip
+def test_stand_in_options_are_checked(argv, named, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        parse_args(argv)
+    assert exit_info.value.code == 2 and named in capsys.readouterr().err

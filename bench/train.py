@@ -11,6 +11,9 @@
    with the paper-size policy, after warm-up steps that load kernels and fill caches.
 3. The privileged teacher's env (no 224 render, no encoder) with its PPO update: env-steps/s.
 4. CMWAE training: optimizer steps/s in each precision.
+5. With ``recorded`` flight logs: bf16's latent error against fp32 on the recorded frames, and with
+   ``policy_dir`` the change of the policy's action it causes, each model carrying its own GRU
+   state through every flight.
 """
 
 from __future__ import annotations
@@ -52,6 +55,8 @@ class TrainBenchConfig:
     teacher_envs: int = 1024
     cmwae_batch: int = 32
     cmwae_steps: int = 3
+    recorded: tuple[str, ...] = ()  # flight logs (MCAP) for the parity on recorded frames
+    policy_dir: str | None = None  # the policy whose action parity is measured on them
 
 
 def quick(config: TrainBenchConfig) -> TrainBenchConfig:
@@ -180,7 +185,45 @@ def run_train_bench(config: TrainBenchConfig) -> dict:
     return {"device": device_name(device), "cpu": cpu_name(), "cpu_bf16_flags": sorted(f for f in read_cpu_flags() if "bf16" in f),
             "encoder": encoder_name, "threads": torch.get_num_threads(), "auto_path": {"name": auto.name, "reason": auto.reason},
             "config": asdict(config), "encoder_speed": encoders, "rows": rows, "teacher": teacher,
-            "cmwae_train": cmwae_train_speeds(config, device)}  # fmt: skip
+            "cmwae_train": cmwae_train_speeds(config, device),
+            "recorded_parity": recorded_parity(encoder, config, device) if config.recorded else None}  # fmt: skip
+
+
+@torch.no_grad()
+def recorded_parity(encoder, config: TrainBenchConfig, device: torch.device) -> dict:
+    """bf16 against fp32 on every step of the recorded flights: the latent's error (relative to its
+    per-dimension std over all steps) and, with a policy, the action's, each carrying its own GRU state."""
+    from export.policy_onnx import flight_inputs
+    from training.policy.network import load_policy
+
+    policy = load_policy(config.policy_dir, device)[0] if config.policy_dir else None
+    fast = FrozenEncoder(encoder, FastPath(torch.bfloat16, device.type == "cpu", "bench"))
+    latents = {"fp32": [], "bf16": []}
+    action_error, steps = 0.0, 0
+    for log_path in config.recorded:
+        flight = flight_inputs(log_path, policy.hidden_size if policy else 1)
+        gray, depth = torch.from_numpy(flight.gray).to(device), torch.from_numpy(flight.depth).to(device)
+        z = {"fp32": torch.cat([encoder(gray[i : i + 32], depth[i : i + 32]) for i in range(0, len(flight), 32)]),
+             "bf16": torch.cat([fast(gray[i : i + 32], depth[i : i + 32]) for i in range(0, len(flight), 32)])}  # fmt: skip
+        for name in z:
+            latents[name].append(z[name].float())
+        steps += len(flight)
+        if policy is None:
+            continue
+        state = torch.from_numpy(flight.state).to(device)
+        hidden = {name: policy.initial_hidden(1, device) for name in z}
+        for i in range(len(flight)):
+            actions = {}
+            for name in z:
+                if flight.resets[i]:
+                    hidden[name] = policy.initial_hidden(1, device)
+                actions[name], _, hidden[name] = policy.step(torch.cat([state[i : i + 1], z[name][i : i + 1]], dim=1), hidden[name])
+            action_error = max(action_error, float((actions["bf16"] - actions["fp32"]).abs().max()))
+    reference, bf16 = torch.cat(latents["fp32"]), torch.cat(latents["bf16"])
+    rel = (bf16 - reference) / reference.std(dim=0).clamp_min(1e-6)
+    return {"flights": len(config.recorded), "steps": steps, "latent_max_rel": float(rel.abs().max()),
+            "latent_rms_rel": float(rel.square().mean().sqrt()),
+            "action_max_abs": action_error if policy is not None else None}  # fmt: skip
 
 
 def cpu_name() -> str:
@@ -238,4 +281,9 @@ def format_train_bench(result: dict) -> str:
         "|---|---|---|",
     ]
     lines += [f"| {r['path']} | {r['steps_per_s']:.2f} | {r['ratio_to_fp32']:.2f} |" for r in result["cmwae_train"]]
+    parity = result.get("recorded_parity")
+    if parity:
+        action = "-" if parity["action_max_abs"] is None else f"{parity['action_max_abs']:.4f}"
+        lines += ["", f"bf16 against fp32 on {parity['steps']} recorded steps of {parity['flights']} flights: latent error max "
+                  f"{parity['latent_max_rel']:.4f} / RMS {parity['latent_rms_rel']:.4f} of its std; policy action max {action}"]  # fmt: skip
     return "\n".join(lines)

@@ -212,7 +212,8 @@ def _cmd_bench_train(args: argparse.Namespace) -> int:
     from bench.train import TrainBenchConfig, format_train_bench, quick, run_train_bench
 
     config = TrainBenchConfig(env_counts=tuple(args.envs), device=args.device, encoder_dir=args.encoder,
-                              rollout_steps=args.steps, level=args.level)  # fmt: skip
+                              rollout_steps=args.steps, level=args.level, recorded=tuple(args.recorded or ()),
+                              policy_dir=args.policy)  # fmt: skip
     result = run_train_bench(quick(config) if args.quick else config)
     print(json.dumps(result) if args.json else format_train_bench(result))
     return 0
@@ -606,6 +607,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench_train.add_argument("--encoder", help="encoder checkpoint (default: an untrained paper-size encoder)")
     bench_train.add_argument("--steps", type=int, default=16, help="rollout steps timed per N (default 16)")
     bench_train.add_argument("--level", type=int, default=10, help="obstacles per room (default 10)")
+    bench_train.add_argument("--recorded", nargs="+", metavar="LOG", help="flight logs: bf16's latent (and action) parity on their frames")
+    bench_train.add_argument("--policy", help="policy checkpoint for the action parity on --recorded frames")
     bench_train.add_argument("--json", action="store_true", help="print the result as one JSON object instead")
     bench_train.add_argument("--quick", action="store_true", help="a seconds-long smoke run (2 envs, tiny networks)")
     bench_train.set_defaults(func=_cmd_bench_train)

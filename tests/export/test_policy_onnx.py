@@ -310,3 +310,16 @@ def test_carried_outputs_replay_the_recorded_flight(recorded_logs, tmp_path):
     no_reset = flight.subset(slice(None), "no resets")
     no_reset.resets[1:] = False
     assert np.abs(carried_outputs(session, no_reset)[c.ONNX_OUTPUT_ACTION] - flown).max() > 1e-3
+
+
+def test_bench_train_measures_bf16_parity_on_recorded_frames(checkpoints, recorded_logs):
+    from bench.train import TrainBenchConfig, recorded_parity
+    from export.policy_onnx import flight_inputs
+    from training.cmwae.train import load_cmwae
+
+    encoder_dir, policy_dir = checkpoints
+    encoder = load_cmwae(encoder_dir)[0].encoder
+    config = TrainBenchConfig(recorded=tuple(str(p) for p in recorded_logs), policy_dir=str(policy_dir))
+    parity = recorded_parity(encoder, config, torch.device("cpu"))
+    assert parity["flights"] == 2 and parity["steps"] == sum(len(flight_inputs(p, 1)) for p in recorded_logs)
+    assert 0.0 < parity["latent_rms_rel"] <= parity["latent_max_rel"] and parity["action_max_abs"] is not None

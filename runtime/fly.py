@@ -19,6 +19,11 @@ One MCAP log per episode in ``recorder.log_dir`` (rotated: ``recorder.max_logs``
 WATCHDOG pings from the flight loop's healthy iterations (and from the waiting phases while the
 event loop runs), so a stalled loop is killed and restarted.
 
+A stop signal (SIGTERM from ``systemctl stop``, SIGINT) at any moment ends in a state the runtime
+commands (``runtime.stop``: in offboard a hover setpoint, then Hold at once; taking off, Hold;
+landing goes on), never in the autopilot's offboard-loss failsafe; the summary's ``stop`` records
+the signal, the phase it interrupted, the action and the time.
+
 Exit codes: 0 done (episodes flown, a dry run that reached its goal, or stopped by SIGTERM/SIGINT
 — hover then Hold first if flying); 1 a failure that a restart may cure (no autopilot or camera
 yet, a dry run that did not reach the goal); 2 a failure a restart cannot cure (config, model,
@@ -32,6 +37,7 @@ import dataclasses
 import json
 import logging
 import os
+import time
 from pathlib import Path
 from typing import Awaitable, TypeVar
 
@@ -51,7 +57,8 @@ from .model import ModelLoadError, PolicyModel, resolve_providers
 from .recorder import Recorder, RecorderError
 from .sdnotify import SystemdNotifier
 from .shutdown import close_step
-from .signals import cancel_on_stop_signals
+from .signals import StopSignals, cancel_on_stop_signals, ignore_stop_signals
+from .stop import FlightPhase, Phase, stop_on_signal
 from .vehicle import MODE_OFFBOARD, Vehicle, VehicleError, VehicleState
 
 log = logging.getLogger(__name__)
@@ -103,8 +110,10 @@ class FieldProgram:
     def __init__(self, config: RuntimeConfig, notifier: SystemdNotifier) -> None:
         self.config = config
         self.notifier = notifier
-        self.summary: dict = {"episodes": [], "logs": [], "error": None}
-        self._in_offboard = False  # an episode (or the dry run's offboard phase) is under way
+        self.summary: dict = {"episodes": [], "logs": [], "error": None, "stop": None}
+        self.flight = FlightPhase()  # what a stop signal interrupts (runtime.stop)
+        self.signals: StopSignals | None = None  # set by the entry point
+        self._t_start_ns = time.monotonic_ns()
 
     async def run(self) -> int:
         """Everything from model load to exit; returns the exit code (see the module docstring)."""
@@ -137,9 +146,7 @@ class FieldProgram:
         except (RealSenseUnavailableError, ReplayError) as err:
             raise FlyError(EXIT_FAILED, f"camera: {err}") from err
         except asyncio.CancelledError:
-            if self._in_offboard:
-                log.warning("stopping in flight: hover, then Hold")
-                await loop.safe_stop()
+            await self.stop(loop, vehicle)
             raise
         finally:
             await close_step("the flight loop and camera", loop.close)
@@ -147,12 +154,21 @@ class FieldProgram:
 
     # ------------------------------------------------------------------ start-up
 
+    async def stop(self, loop: FlightLoop | None, vehicle: Vehicle | None) -> None:
+        """The safe stop after a stop signal, once (``runtime.stop``); records ``summary["stop"]``."""
+        if self.summary["stop"] is not None or self.signals is None:
+            return
+        self.summary["stop"] = await stop_on_signal(self.signals, self.flight, loop, vehicle, self._t_start_ns)
+
     async def _start(self, vehicle: Vehicle, loop: FlightLoop) -> None:
         self._status(f"connecting to the autopilot on {self.config.vehicle.url}")
+        self.flight.enter(Phase.CONNECTING)
         await self._alive_while(vehicle.connect())
         await loop.start()
         self._status("waiting for autopilot health (armable, local position, home)")
+        self.flight.enter(Phase.WAITING_FOR_HEALTH)
         await self._alive_while(vehicle.wait_ready())
+        self.flight.enter(Phase.WAITING_FOR_CAMERA)
         self._status(f"waiting for the first {self.config.camera.source} camera frame")
         timeout_s = self.config.camera.first_frame_timeout_s
         try:
@@ -178,10 +194,12 @@ class FieldProgram:
         """Arm, take off, enter offboard, fly one episode, land (``mission.allow_arm_takeoff``)."""
         altitude_m = self.config.mission.takeoff_alt_m
         self._status(f"dry run: arming and taking off to {altitude_m:.2f} m")
+        self.flight.enter(Phase.ARMING)
         await vehicle.arm()
+        self.flight.enter(Phase.TAKING_OFF)
         await vehicle.takeoff(altitude_m)
         await self._alive_while(vehicle.wait_takeoff_done(altitude_m))
-        self._in_offboard = True
+        self.flight.enter(Phase.ENTERING_OFFBOARD)
         await vehicle.start_offboard(HOVER)
         state = await self._alive_while(
             vehicle.wait_until(lambda s: s.flight_mode == MODE_OFFBOARD, self.config.vehicle.command_timeout_s, "offboard mode")
@@ -191,8 +209,10 @@ class FieldProgram:
             log.warning("the pilot took over: not landing, the vehicle is theirs")
             return EXIT_FAILED
         self._status("dry run: landing")
+        self.flight.enter(Phase.LANDING)
         await vehicle.land()
         await self._alive_while(vehicle.wait_disarmed())
+        self.flight.enter(Phase.DONE)
         log.info("landed and disarmed")
         return EXIT_OK if result.outcome == "success" else EXIT_FAILED
 
@@ -200,6 +220,7 @@ class FieldProgram:
         """Stream hover setpoints and wait until the pilot switches *into* offboard, armed and in the air."""
         seen_outside = False
         last_status = ""
+        self.flight.enter(Phase.WAITING_FOR_PILOT)
         while True:
             await vehicle.set_velocity_body(HOVER)  # ignored outside offboard; lets the pilot select it
             state = vehicle.state()
@@ -225,22 +246,33 @@ class FieldProgram:
         goal_enu_m = state.home_enu_m + np.asarray(self.config.mission.goal_rel_home_enu_m)
         recorder = self._open_recorder(model, episode)
         loop.recorder = recorder
-        self._in_offboard = True
+        self.flight.enter(Phase.EPISODE)
         self._status(f"episode {episode}: flying to the goal {np.round(goal_enu_m - state.home_enu_m, 2).tolist()} m from home")
         try:
             result = await loop.fly(goal_enu_m, self.config.mission.episode_timeout_s)
+            self.flight.enter(Phase.HOLDING)
+        except asyncio.CancelledError:
+            # A stop signal: the safe stop now, while this episode's log is still open to record it.
+            await self.stop(loop, loop.vehicle)
+            if loop.interrupted is not None:
+                self._record_episode(loop.interrupted, episode, recorder, abort_reason=f"stopped by {self.summary['stop']['cause']}")
+            raise
         finally:
-            self._in_offboard = False
             loop.recorder = None
             if recorder is not None:
                 await asyncio.get_running_loop().run_in_executor(None, recorder.close)
-        record = dataclasses.asdict(result)
-        record.update(episode=episode, log=str(recorder.path) if recorder else None)
-        self.summary["episodes"].append(record)
+        self._record_episode(result, episode, recorder)
         log.info("episode %d: %s in %.2f s (%d steps, final distance %.2f m, trips %s)", episode, result.outcome,
                  result.time_s, result.frames, result.final_distance_m, [t["cause"] for t in result.watchdog_trips])  # fmt: skip
         self.notifier.status(f"episode {episode}: {result.outcome}" + (f" ({result.abort_reason})" if result.abort_reason else ""))
         return result
+
+    def _record_episode(self, result: EpisodeResult, episode: int, recorder: Recorder | None, abort_reason: str | None = None) -> None:
+        record = dataclasses.asdict(result)
+        record.update(episode=episode, log=str(recorder.path) if recorder else None)
+        if abort_reason is not None:
+            record["abort_reason"] = abort_reason
+        self.summary["episodes"].append(record)
 
     def _open_recorder(self, model: PolicyModel, episode: int) -> Recorder | None:
         cfg = self.config.recorder
@@ -276,7 +308,7 @@ class FieldProgram:
 
 
 async def _main(program: FieldProgram) -> int:
-    cancel_on_stop_signals()
+    program.signals = cancel_on_stop_signals()
     try:
         return await program.run()
     except FlyError as err:
@@ -284,8 +316,8 @@ async def _main(program: FieldProgram) -> int:
         program.summary["error"] = str(err)
         return err.exit_code
     except asyncio.CancelledError:
-        log.warning("stopped by a signal")
-        program.summary["error"] = "stopped by a signal"
+        await program.stop(None, None)  # stopped before the vehicle existed: recorded, nothing to command
+        program.summary["error"] = f"stopped by {program.summary['stop']['cause']}"
         return EXIT_OK
 
 
@@ -311,6 +343,7 @@ def run_fly(config_path: str | Path, print_json: bool = False, check_only: bool 
     try:
         code = asyncio.run(_main(program))
     finally:
+        ignore_stop_signals()
         notifier.stopping()
         notifier.close()
     if print_json:

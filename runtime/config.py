@@ -151,8 +151,12 @@ class RecorderConfig:
     # deleted so that at most max_logs remain and the older ones take at most max_total_gb.
     max_logs: int = 50
     max_total_gb: float = 20.0
+    # The log cannot be written (full disk, I/O error) before offboard: true = refuse offboard
+    # (a dry run lands; a pilot's switch gets hover, then Hold), false = fly unrecorded.
+    required: bool = True
 
     def __post_init__(self) -> None:
+        _require(isinstance(self.required, bool), "recorder.required", self.required, "true or false")
         _require(
             isinstance(self.flush_period_s, (int, float)) and 0.0 < self.flush_period_s <= 1.0,
             "recorder.flush_period_s",

@@ -56,7 +56,7 @@ from .log_rotation import new_log_path, rotate_logs
 from .model import ModelLoadError, PolicyModel, resolve_providers
 from .recorder import Recorder, RecorderError
 from .sdnotify import SystemdNotifier
-from .shutdown import close_step
+from .shutdown import close_step, in_daemon_thread
 from .signals import StopSignals, cancel_on_stop_signals, ignore_stop_signals
 from .stop import FlightPhase, Phase, stop_on_signal
 from .vehicle import MODE_OFFBOARD, Vehicle, VehicleError, VehicleState
@@ -73,6 +73,10 @@ EXIT_CONFIG = 2
 # re-sending at the first HEARTBEAT that shows another mode, so the runtime streams them itself.
 PILOT_POLL_S = 0.1
 ALIVE_PERIOD_S = 0.25  # how often the waiting phases report the event loop alive
+
+
+class RecorderRefusal(RuntimeError):
+    """The flight log cannot be written and ``recorder.required`` is true: no offboard."""
 
 
 class FlyError(RuntimeError):
@@ -110,7 +114,7 @@ class FieldProgram:
     def __init__(self, config: RuntimeConfig, notifier: SystemdNotifier) -> None:
         self.config = config
         self.notifier = notifier
-        self.summary: dict = {"episodes": [], "logs": [], "error": None, "stop": None}
+        self.summary: dict = {"episodes": [], "logs": [], "error": None, "stop": None, "log_error": None}
         self.flight = FlightPhase()  # what a stop signal interrupts (runtime.stop)
         self.signals: StopSignals | None = None  # set by the entry point
         self._t_start_ns = time.monotonic_ns()
@@ -187,7 +191,18 @@ class FieldProgram:
         while max_episodes == 0 or episode < max_episodes:
             episode += 1
             state = await self._wait_for_offboard(vehicle, episode)
-            await self._episode(loop, model, episode, state)
+            try:
+                recorder = self._open_recorder(model, episode)
+            except RecorderRefusal as err:
+                # The pilot's switch cannot be prevented, only answered: hover, then Hold at once.
+                log.error("episode %d refused, hover then Hold: %s", episode, err)
+                self.flight.enter(Phase.ENTERING_OFFBOARD)
+                await loop.safe_stop()
+                self.flight.enter(Phase.HOLDING)
+                self.summary["episodes"].append({"episode": episode, "outcome": "refused", "abort_reason": str(err)})
+                self.notifier.status(f"episode {episode}: refused ({err})")
+                continue
+            await self._episode(loop, model, episode, state, recorder)
         return EXIT_OK
 
     async def _dry_run(self, vehicle: Vehicle, loop: FlightLoop, model: PolicyModel) -> int:
@@ -199,22 +214,32 @@ class FieldProgram:
         self.flight.enter(Phase.TAKING_OFF)
         await vehicle.takeoff(altitude_m)
         await self._alive_while(vehicle.wait_takeoff_done(altitude_m))
+        try:
+            recorder = self._open_recorder(model, 1)
+        except RecorderRefusal as err:
+            self.summary["error"] = f"offboard refused: {err}"
+            log.error("not entering offboard: %s; landing", err)
+            await self._land(vehicle)
+            return EXIT_CONFIG
         self.flight.enter(Phase.ENTERING_OFFBOARD)
         await vehicle.start_offboard(HOVER)
         state = await self._alive_while(
             vehicle.wait_until(lambda s: s.flight_mode == MODE_OFFBOARD, self.config.vehicle.command_timeout_s, "offboard mode")
         )
-        result = await self._episode(loop, model, 1, state)
+        result = await self._episode(loop, model, 1, state, recorder)
         if loop.watchdog.pilot_took_over:
             log.warning("the pilot took over: not landing, the vehicle is theirs")
             return EXIT_FAILED
+        await self._land(vehicle)
+        return EXIT_OK if result.outcome == "success" else EXIT_FAILED
+
+    async def _land(self, vehicle: Vehicle) -> None:
         self._status("dry run: landing")
         self.flight.enter(Phase.LANDING)
         await vehicle.land()
         await self._alive_while(vehicle.wait_disarmed())
         self.flight.enter(Phase.DONE)
         log.info("landed and disarmed")
-        return EXIT_OK if result.outcome == "success" else EXIT_FAILED
 
     async def _wait_for_offboard(self, vehicle: Vehicle, episode: int) -> VehicleState:
         """Stream hover setpoints and wait until the pilot switches *into* offboard, armed and in the air."""
@@ -240,11 +265,12 @@ class FieldProgram:
             self.notifier.loop_alive()
             await asyncio.sleep(PILOT_POLL_S)
 
-    async def _episode(self, loop: FlightLoop, model: PolicyModel, episode: int, state: VehicleState) -> EpisodeResult:
+    async def _episode(
+        self, loop: FlightLoop, model: PolicyModel, episode: int, state: VehicleState, recorder: Recorder | None
+    ) -> EpisodeResult:
         """One offboard episode toward the goal (relative to home), recorded to its own log."""
         assert state.home_enu_m is not None and self.config.mission.goal_rel_home_enu_m is not None
         goal_enu_m = state.home_enu_m + np.asarray(self.config.mission.goal_rel_home_enu_m)
-        recorder = self._open_recorder(model, episode)
         loop.recorder = recorder
         self.flight.enter(Phase.EPISODE)
         self._status(f"episode {episode}: flying to the goal {np.round(goal_enu_m - state.home_enu_m, 2).tolist()} m from home")
@@ -260,7 +286,8 @@ class FieldProgram:
         finally:
             loop.recorder = None
             if recorder is not None:
-                await asyncio.get_running_loop().run_in_executor(None, recorder.close)
+                await close_step("the flight log", lambda: in_daemon_thread("recorder-close", recorder.close))
+                self._record_log(recorder)
         self._record_episode(result, episode, recorder)
         log.info("episode %d: %s in %.2f s (%d steps, final distance %.2f m, trips %s)", episode, result.outcome,
                  result.time_s, result.frames, result.final_distance_m, [t["cause"] for t in result.watchdog_trips])  # fmt: skip
@@ -270,11 +297,16 @@ class FieldProgram:
     def _record_episode(self, result: EpisodeResult, episode: int, recorder: Recorder | None, abort_reason: str | None = None) -> None:
         record = dataclasses.asdict(result)
         record.update(episode=episode, log=str(recorder.path) if recorder else None)
+        if recorder is not None:
+            record.update(log_error=recorder.stats.log_error, log_records_written=recorder.stats.written,
+                          log_records_dropped=recorder.stats.dropped)  # fmt: skip
         if abort_reason is not None:
             record["abort_reason"] = abort_reason
         self.summary["episodes"].append(record)
 
     def _open_recorder(self, model: PolicyModel, episode: int) -> Recorder | None:
+        """The episode's log, opened (and its first record written) before offboard.  If it cannot
+        be written: :class:`RecorderRefusal` (``recorder.required``), else None (flies unrecorded)."""
         cfg = self.config.recorder
         if cfg.log_dir is None:
             return None
@@ -283,11 +315,18 @@ class FieldProgram:
             path = new_log_path(cfg.log_dir, episode)
             recorder = Recorder(path, cfg, metadata={**model.log_metadata(), "entry": "fly", "episode": str(episode)})
         except (OSError, RecorderError) as err:
-            # Flying unrecorded beats not flying once the pilot has handed over the vehicle.
-            log.error("episode %d is not recorded: %s", episode, err)
+            self.summary["log_error"] = str(err)
+            if cfg.required:
+                raise RecorderRefusal(f"the flight log cannot be written ({err}); recorder.required = true "
+                                      "refuses to fly unrecorded (free disk space, or set it false)") from err  # fmt: skip
+            log.error("episode %d is not recorded (recorder.required = false): %s", episode, err)
             return None
         self.summary["logs"].append(str(path))
         return recorder
+
+    def _record_log(self, recorder: Recorder) -> None:
+        if recorder.stats.log_error is not None:
+            self.summary["log_error"] = recorder.stats.log_error
 
     # ------------------------------------------------------------------ helpers
 

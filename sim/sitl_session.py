@@ -274,6 +274,9 @@ def merge_summary(
         "seed": request.seed,
         "model": str(request.model_path),
         "log": flight.get("log"),
+        "log_error": (flight.get("recorder") or {}).get("log_error"),
+        "log_records_dropped": (flight.get("recorder") or {}).get("dropped"),
+        "stop": flight.get("stop"),
         "plot": str(plot_path),
         "run_dir": str(run_dir),
     }

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import resource
 import select
 import socket
 import subprocess
@@ -154,21 +155,32 @@ log_dir = "{log_dir}"
 """
 
 
-def start_fly(tmp_path: Path, config: str, notify: NotifyListener) -> subprocess.Popen:
+def start_fly(tmp_path: Path, config: str, notify: NotifyListener, file_size_limit_bytes: int | None = None) -> subprocess.Popen:
+    """``cmnav fly --config --json`` with its log in ``tmp_path / "fly.log"``.  ``file_size_limit_bytes``
+    (RLIMIT_FSIZE) makes every write of the process past that size in a regular file fail (EFBIG), as a
+    full disk does (ENOSPC), for any user; its stderr then goes through a pipe (see finish_fly)."""
     path = tmp_path / "cmnav.toml"
     path.write_text(config)
     env = dict(os.environ, NOTIFY_SOCKET=notify.path, WATCHDOG_USEC="2000000", PYTHONUNBUFFERED="1")
+    command = [sys.executable, "-m", "cmnav", "fly", "--config", str(path), "--json"]
+    if file_size_limit_bytes is not None:
+        def limit() -> None:
+            resource.setrlimit(resource.RLIMIT_FSIZE, (file_size_limit_bytes, file_size_limit_bytes))
+
+        return subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                preexec_fn=limit)  # fmt: skip
     with open(tmp_path / "fly.log", "w") as log_file:
-        return subprocess.Popen([sys.executable, "-m", "cmnav", "fly", "--config", str(path), "--json"], cwd=ROOT,
-                                env=env, stdout=subprocess.PIPE, stderr=log_file, text=True)  # fmt: skip
+        return subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=log_file, text=True)
 
 
 def finish_fly(proc: subprocess.Popen, tmp_path: Path) -> tuple[int, dict]:
     try:
-        stdout, _ = proc.communicate(timeout=FLY_TIMEOUT_S)
+        stdout, stderr = proc.communicate(timeout=FLY_TIMEOUT_S)
     except subprocess.TimeoutExpired:
         proc.kill()
-        stdout, _ = proc.communicate()
+        stdout, stderr = proc.communicate()
+    if stderr is not None:
+        (tmp_path / "fly.log").write_text(stderr)
     lines = stdout.strip().splitlines()
     summary = json.loads(lines[-1]) if lines and lines[-1].startswith("{") else {}
     assert summary, f"no summary; runtime log:\n{(tmp_path / 'fly.log').read_text()[-4000:]}"

@@ -17,6 +17,7 @@ the summary gets a ``faults`` list measured on ground truth (:func:`fault_record
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -24,7 +25,9 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,6 +54,55 @@ FAULT_OBSERVE_S = 2.0
 
 class SitlError(RuntimeError):
     """The SITL episode could not be run (a process failed to start or died)."""
+
+
+class SitlStopped(Exception):
+    """SIGTERM / SIGINT reached ``cmnav sitl`` (raised by its handler in the main thread)."""
+
+
+class _StopSignals:
+    """SIGTERM / SIGINT while ``cmnav sitl`` runs: the first one interrupts the wait (raises
+    :class:`SitlStopped`) so that the children are stopped by PID — the runtime with SIGTERM, so it
+    commands hover then Hold and writes its summary, then the vehicle.  Further signals, and any
+    that come once the children are being stopped, are logged and ignored: they must not cut the
+    stop short (each child is SIGKILLed after STOP_TIMEOUT_S if it ignores SIGTERM)."""
+
+    def __init__(self) -> None:
+        self.received: str | None = None
+        self.may_raise = True
+        self._previous: dict[int, object] = {}
+
+    def install(self) -> None:
+        if threading.current_thread() is threading.main_thread():  # signal handlers live there only
+            self._previous = {sig: signal.signal(sig, self._on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+
+    def restore(self) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+    @contextlib.contextmanager
+    def deferred(self) -> Iterator[None]:
+        """A signal in this block is raised at its end (not half way through starting a child)."""
+        self.may_raise = False
+        try:
+            yield
+        finally:
+            self.may_raise = True
+        if self.received is not None:
+            raise SitlStopped(self.received)
+
+    def _on_signal(self, signum: int, _frame: object) -> None:
+        name = signal.Signals(signum).name
+        if self.received is not None:
+            log.warning("%s received while stopping: ignored, the runtime and the vehicle are being stopped", name)
+            return
+        if not self.may_raise:
+            self.received = name
+            log.warning("%s received: stopping the runtime and the SITL vehicle", name)
+            return
+        self.received = name
+        log.warning("%s received: stopping the runtime (it commands Hold) and the SITL vehicle", name)
+        raise SitlStopped(name)
 
 
 @dataclass(frozen=True)
@@ -134,28 +186,33 @@ def run_sitl(request: SitlRequest) -> dict:
         raise SitlError(f"model file {request.model_path} not found: export one with `cmnav export goal-seeker -o PATH`")
     run_dir = request.out_dir / f"level{request.level}_seed{request.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
     run_dir.mkdir(parents=True, exist_ok=True)
+    mavlink_port, camera_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    t_launch = time.monotonic()
+    signals = _StopSignals()
+    signals.install()
+    try:
+        return _run_processes(request, run_dir, mavlink_port, camera_port, env, signals, t_launch)
+    finally:
+        signals.restore()
+
+
+def _run_processes(
+    request: SitlRequest, run_dir: Path, mavlink_port: int, camera_port: int, env: dict, signals: _StopSignals,
+    t_launch: float,
+) -> dict:  # fmt: skip
     episode_path, trace_path, summary_path = run_dir / "episode.json", run_dir / "trace.json", run_dir / "runtime_summary.json"
     status_path = run_dir / "vehicle_status.json"
     sim_log, runtime_log = run_dir / "sim.log", run_dir / "runtime.log"
-    mavlink_port, camera_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-
-    t_launch = time.monotonic()
     t_kill_s = None
-    with open(sim_log, "w") as sim_out:
-        vehicle = subprocess.Popen(
-            [sys.executable, "-m", "sim.sitl", "--mavlink-port", str(mavlink_port), "--camera-port", str(camera_port),
-             "--level", str(request.level), "--seed", str(request.seed), "--degrade", request.degrade,
-             "--episode-json", str(episode_path), "--trace", str(trace_path), "--status-json", str(status_path),
-             *request.injections_at(FaultSite.VEHICLE)],
-            stdout=sim_out, stderr=subprocess.STDOUT, env=env,
-        )  # fmt: skip
-    runtime = None
+    vehicle = runtime = None
     try:
+        with signals.deferred():  # a child started is a child whose PID we hold
+            vehicle = _start_vehicle(request, mavlink_port, camera_port, episode_path, trace_path, status_path, sim_log, env)
         episode = _wait_for_file(episode_path, vehicle, VEHICLE_READY_TIMEOUT_S, "the SITL vehicle", sim_log)
         log.info("SITL vehicle ready (pid %d): level %d seed %d, goal %s m from home",
                  vehicle.pid, request.level, request.seed, episode["goal_rel_home_enu_m"])  # fmt: skip
-        with open(runtime_log, "w") as runtime_out:
+        with open(runtime_log, "w") as runtime_out, signals.deferred():
             runtime = subprocess.Popen(
                 [sys.executable, "-m", "runtime.sitl_flight", "--mavlink-port", str(mavlink_port),
                  "--camera-port", str(camera_port), "--model", str(request.model_path),
@@ -168,11 +225,16 @@ def run_sitl(request: SitlRequest) -> dict:
         t_kill_s = _wait_runtime(runtime, request, status_path)
         if request.injections and [mode for _, mode in _vehicle_mode_log(status_path)][-1:] != ["LAND"]:
             time.sleep(FAULT_OBSERVE_S)  # still flying: ground truth of the response, whatever the runtime did
+    except SitlStopped:
+        pass  # the children are stopped below, the runtime first; what it recorded makes the summary
     finally:
+        signals.may_raise = False
         if runtime is not None:
-            stop_process(runtime, "runtime")
-        stop_process(vehicle, "SITL vehicle")
-
+            stop_process(runtime, "runtime")  # SIGTERM: hover, then Hold, summary written
+        if vehicle is not None:
+            stop_process(vehicle, "SITL vehicle")
+    if signals.received is not None and runtime is None:
+        raise SitlError(f"stopped by {signals.received} before the flight started; nothing was armed")
     if not trace_path.exists():
         raise SitlError(f"the SITL vehicle wrote no trace; its log ({sim_log}):\n{_tail(sim_log)}")
     if t_kill_s is not None:
@@ -181,11 +243,27 @@ def run_sitl(request: SitlRequest) -> dict:
         flight = {"outcome": "aborted", "abort_reason": "runtime_killed", "log": log_path and str(log_path), "watchdog_trips": []}
     elif summary_path.exists():
         flight = json.loads(summary_path.read_text())
+        if signals.received is not None and flight.get("stop") is not None:
+            flight["abort_reason"] = f"stopped by {signals.received}"  # forwarded to the runtime as SIGTERM
     else:
         raise SitlError(f"the runtime wrote no summary (exit code {runtime.returncode if runtime else None}); "
                         f"its log ({runtime_log}):\n{_tail(runtime_log)}")  # fmt: skip
     trace = json.loads(trace_path.read_text())
     return merge_summary(request, episode, flight, trace, run_dir, time.monotonic() - t_launch, t_kill_s)
+
+
+def _start_vehicle(
+    request: SitlRequest, mavlink_port: int, camera_port: int, episode_path: Path, trace_path: Path, status_path: Path,
+    sim_log: Path, env: dict,
+) -> subprocess.Popen:  # fmt: skip
+    with open(sim_log, "w") as sim_out:
+        return subprocess.Popen(
+            [sys.executable, "-m", "sim.sitl", "--mavlink-port", str(mavlink_port), "--camera-port", str(camera_port),
+             "--level", str(request.level), "--seed", str(request.seed), "--degrade", request.degrade,
+             "--episode-json", str(episode_path), "--trace", str(trace_path), "--status-json", str(status_path),
+             *request.injections_at(FaultSite.VEHICLE)],
+            stdout=sim_out, stderr=subprocess.STDOUT, env=env,
+        )  # fmt: skip
 
 
 def _wait_runtime(runtime: subprocess.Popen, request: SitlRequest, status_path: Path) -> float | None:

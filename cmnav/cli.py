@@ -252,7 +252,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Validate the TOML config (nothing talks to the vehicle before it and the model pass), "
         "connect, wait for the pilot to arm, take off and switch to offboard (or, with "
         "mission.allow_arm_takeoff = true, do that itself), fly to the goal, Hold, repeat.  "
-        "Exit 0 done or stopped, 1 a failure a restart may cure, 2 a bad config or model.  "
+        "SIGTERM/SIGINT in any phase: the runtime commands the safe state (in offboard hover, then Hold) and exits.  "
+        "Exit 0 done or stopped, 1 a failure a restart may cure, 2 a bad config or model (or an unwritable log with "
+        "recorder.required).  "
         "Every key: examples/cmnav.toml.",
     )
     fly.add_argument("--config", required=True, help="TOML config, e.g. /etc/cmnav/cmnav.toml")

@@ -53,7 +53,7 @@ from .contract import HOVER, ContractMismatchError
 from .flight import EpisodeResult, FlightLoop
 from .log_reader import ReplayError
 from .log_rotation import new_log_path, rotate_logs
-from .model import ModelLoadError, PolicyModel, resolve_providers
+from .model import ModelLoadError, PolicyModel, check_outputs_finite, resolve_providers
 from .recorder import Recorder, RecorderError
 from .sdnotify import SystemdNotifier
 from .shutdown import close_step, in_daemon_thread
@@ -93,7 +93,9 @@ def load_model(config: RuntimeConfig) -> PolicyModel:
     policy = config.policy
     try:
         providers = resolve_providers(policy.providers, policy.provider_fallback)
-        return PolicyModel(policy.model_path, providers, policy.intra_op_threads)
+        model = PolicyModel(policy.model_path, providers, policy.intra_op_threads)
+        check_outputs_finite(model)  # on the ground, before anything is armed
+        return model
     except (ModelLoadError, ContractMismatchError) as err:
         raise FlyError(EXIT_CONFIG, f"model refused, nothing armed: {err}") from err
 

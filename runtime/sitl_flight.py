@@ -41,7 +41,7 @@ from .contract import HOVER, ContractMismatchError
 from .fault_injection import FaultyPolicy, shrink_geofence, shrink_geofence_at
 from .faults import FaultKind, FaultSite, Injection, InjectionError, parse_injection
 from .flight import EpisodeResult, FlightLoop, log_task_failure
-from .model import ModelLoadError, PolicyModel
+from .model import ModelLoadError, PolicyModel, check_outputs_finite
 from .recorder import Recorder, RecorderError
 from .shutdown import close_step, in_daemon_thread
 from .signals import StopSignals, cancel_on_stop_signals, ignore_stop_signals
@@ -115,6 +115,7 @@ async def fly_episode(args: argparse.Namespace, summary: dict, signals: StopSign
     )
     try:
         model = PolicyModel(config.policy.model_path, config.policy.providers, config.policy.intra_op_threads)
+        check_outputs_finite(model)
     except (ModelLoadError, ContractMismatchError) as err:
         raise FlightError(f"model refused, nothing armed: {err}") from err
     summary["model"] = {"path": str(model.path), "hidden_size": model.hidden_size, "providers": list(model.providers)}

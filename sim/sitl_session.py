@@ -33,8 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
+from runtime.contract import ContractMismatchError
 from runtime.contract.constants import GOAL_REACHED_RADIUS_M
 from runtime.faults import FaultKind, FaultSite, Injection, InjectionError, parse_injection
+from runtime.model import ModelLoadError, PolicyModel, check_outputs_finite
 
 from .fault_report import fault_records, vehicle_failsafe_trip
 from .plot import plot_top_view
@@ -184,6 +186,10 @@ def run_sitl(request: SitlRequest) -> dict:
     """Fly one episode and return the merged summary (see ``cmnav sitl --help``)."""
     if not request.model_path.is_file():
         raise SitlError(f"model file {request.model_path} not found: export one with `cmnav export goal-seeker -o PATH`")
+    try:  # the runtime's own load and first steps, before any process starts
+        check_outputs_finite(PolicyModel(request.model_path))
+    except (ModelLoadError, ContractMismatchError) as err:
+        raise SitlError(f"model refused, nothing started: {err}") from err
     run_dir = request.out_dir / f"level{request.level}_seed{request.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
     run_dir.mkdir(parents=True, exist_ok=True)
     mavlink_port, camera_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)

@@ -26,7 +26,8 @@ ROOT = Path(__file__).resolve().parents[2]
 @pytest.fixture(scope="module")
 def models(tmp_path_factory) -> dict[str, Path]:
     tmp = tmp_path_factory.mktemp("models")
-    return {"good": save(step_model(), tmp / "good.onnx"), "old": save(step_model(metadata={}), tmp / "old.onnx")}
+    return {"good": save(step_model(), tmp / "good.onnx"), "old": save(step_model(metadata={}), tmp / "old.onnx"),
+            "nan": save(step_model(action_offset=float("nan")), tmp / "nan.onnx")}
 
 
 @pytest.fixture
@@ -83,6 +84,7 @@ BAD = {
     "bad sha256": ('model_sha256 = "' + "ab" * 32 + '"', "", "good", "policy.model_sha256 = '" + "ab" * 32 + "' but"),
     "missing model": ("", "", "missing", "policy.model_path = "),
     "model without contract": ("", "", "old", "model refused, nothing armed"),
+    "model that outputs NaN": ("", "", "nan", "outputs NaN/Inf (action) on all-zero inputs"),
 }  # fmt: skip
 
 
@@ -137,3 +139,9 @@ def test_unavailable_provider_refuses_or_falls_back_per_config(models, tmp_path,
     code, out = _check(tmp_path, _config(models["good"], 9, policy=providers + "\nprovider_fallback = true"), capsys)
     assert code == 0 and "loads on ['CPUExecutionProvider']" in out
     assert "falling back to ['CPUExecutionProvider']" in caplog.text
+
+
+def test_check_refuses_a_model_that_outputs_nan(models, tmp_path, capsys, caplog):
+    code, out = _check(tmp_path, _config(models["nan"], 9), capsys)
+    assert code == 2 and "config valid" not in out
+    assert "model refused, nothing armed" in caplog.text and "outputs NaN/Inf (action) on all-zero inputs" in caplog.text

@@ -105,3 +105,17 @@ def test_bad_injection_is_refused_before_anything_starts(tmp_path, capsys):
                               inject=["camera-stal@2"])  # fmt: skip
     assert run_sitl_cli(args) == 2
     assert "unknown fault kind 'camera-stal'" in capsys.readouterr().err
+
+
+def test_a_nan_model_is_refused_before_any_process_starts(tmp_path, capsys):
+    from tests.runtime.onnx_models import save, step_model
+
+    model = save(step_model(action_offset=float("nan")), tmp_path / "nan.onnx")
+    out = tmp_path / "runs"
+    args = argparse.Namespace(model=str(model), level=0, seed=0, timeout=10.0, out=str(out), json=False, inject=[],
+                              degrade="none")  # fmt: skip
+    assert run_sitl_cli(args) == 2
+    err = capsys.readouterr().err
+    assert "model refused, nothing started" in err and "outputs NaN/Inf (action)" in err
+    assert len(err.strip().splitlines()) == 1
+    assert not out.exists()  # no run directory: neither the vehicle nor the runtime was started

@@ -20,6 +20,7 @@ import argparse
 import contextlib
 import json
 import logging
+import math
 import os
 import signal
 import socket
@@ -37,7 +38,9 @@ from runtime.contract import ContractMismatchError
 from runtime.contract.constants import GOAL_REACHED_RADIUS_M
 from runtime.faults import FaultKind, FaultSite, Injection, InjectionError, parse_injection
 from runtime.model import ModelLoadError, PolicyModel, check_outputs_finite
+from runtime.paths import directory_problem
 
+from .episode_args import check_level_seed
 from .fault_report import fault_records, vehicle_failsafe_trip
 from .plot import plot_top_view
 
@@ -184,6 +187,8 @@ def _percent_stats(fractions: list[float]) -> dict[str, float]:
 
 def run_sitl(request: SitlRequest) -> dict:
     """Fly one episode and return the merged summary (see ``cmnav sitl --help``)."""
+    if (problem := directory_problem(request.out_dir)) is not None:
+        raise SitlError(f"--out {request.out_dir}: {problem}: pass a writable directory")
     if not request.model_path.is_file():
         raise SitlError(f"model file {request.model_path} not found: export one with `cmnav export goal-seeker -o PATH`")
     try:  # the runtime's own load and first steps, before any process starts
@@ -191,7 +196,13 @@ def run_sitl(request: SitlRequest) -> dict:
     except (ModelLoadError, ContractMismatchError) as err:
         raise SitlError(f"model refused, nothing started: {err}") from err
     run_dir = request.out_dir / f"level{request.level}_seed{request.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
-    run_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise SitlError(f"--out {request.out_dir}: cannot create {run_dir} ({err.strerror or err}): "
+                        "pass a writable directory") from err  # fmt: skip
+    if not os.access(run_dir, os.W_OK | os.X_OK):
+        raise SitlError(f"--out {request.out_dir}: {run_dir} is not writable by this user: pass a writable directory")
     mavlink_port, camera_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     t_launch = time.monotonic()
@@ -249,6 +260,8 @@ def _run_processes(
         flight = {"outcome": "aborted", "abort_reason": "runtime_killed", "log": log_path and str(log_path), "watchdog_trips": []}
     elif summary_path.exists():
         flight = json.loads(summary_path.read_text())
+        if runtime is not None and runtime.returncode == 2:  # refused before the flight (sitl_flight's exit 2)
+            raise SitlError(f"the runtime could not run the episode: {flight.get('error')} (its log: {runtime_log})")
         if signals.received is not None and flight.get("stop") is not None:
             flight["abort_reason"] = f"stopped by {signals.received}"  # forwarded to the runtime as SIGTERM
     else:
@@ -377,6 +390,13 @@ def run_sitl_cli(args: argparse.Namespace) -> int:
     try:
         injections = tuple(parse_injection(text) for text in args.inject)
     except InjectionError as err:
+        print(f"cmnav sitl: {err}", file=sys.stderr)
+        return 2
+    try:  # before any process starts: the children would refuse them with a traceback
+        check_level_seed(args.level, args.seed)
+        if not (math.isfinite(args.timeout) and args.timeout > 0.0):
+            raise ValueError(f"--timeout {args.timeout} must be a positive number of seconds")
+    except ValueError as err:
         print(f"cmnav sitl: {err}", file=sys.stderr)
         return 2
     request = SitlRequest(Path(args.model), args.level, args.seed, args.timeout, Path(args.out), injections, args.degrade)

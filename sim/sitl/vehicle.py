@@ -23,6 +23,7 @@ from runtime.camera.frame import Frame
 from runtime.faults import Injection
 from sim.camera import CameraModel
 from sim.degradation import ProjectorOffModel
+from sim.episode_args import check_level_seed
 from sim.world import make_worlds
 
 from .airframe import Airframe
@@ -69,8 +70,7 @@ class SitlConfig:
         """Raise ValueError naming the bad option."""
         if self.degrade not in DEGRADATIONS:
             raise ValueError(f"--degrade {self.degrade!r} must be one of {sorted(DEGRADATIONS)}")
-        if self.level < 0:
-            raise ValueError(f"--level {self.level} must be >= 0")
+        check_level_seed(self.level, self.seed)
         if not 10.0 <= self.physics_hz <= 1000.0:
             raise ValueError(f"--physics-hz {self.physics_hz} must be in [10, 1000]")
         if not 0.0 < self.camera_hz <= 60.0:

@@ -371,9 +371,10 @@ def run_fly(config_path: str | Path, print_json: bool = False, check_only: bool 
         if check_only:
             model = load_model(config)
     except (ConfigError, FlyError) as err:
-        log.error("config %s refused, nothing started: %s", config_path, err)
+        message = str(err) if str(err).startswith(str(config_path)) else f"{config_path}: {err}"
+        log.error("config refused, nothing started: %s", message)
         if print_json:
-            print(json.dumps({"episodes": [], "logs": [], "error": f"config: {err}"}))
+            print(json.dumps({"episodes": [], "logs": [], "error": f"config: {message}"}))
         return EXIT_CONFIG
     if check_only:
         print(f"{config_path}: config valid; model {model.path} loads on {list(model.providers)} "

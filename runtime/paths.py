@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 
@@ -13,8 +14,18 @@ def directory_problem(path: str | Path) -> str | None:
     if target.exists():
         if not target.is_dir():
             return f"{target} is a file, not a directory"
-        return None if os.access(target, os.W_OK | os.X_OK) else f"{target} is not writable by this user"
+        return _probe(target) if os.access(target, os.W_OK | os.X_OK) else f"{target} is not writable by this user"
     return _ancestor_problem(target)
+
+
+def _probe(directory: Path) -> str | None:
+    """Create (and remove) a directory in ``directory``: permissions alone miss read-only mounts,
+    /proc and /sys, and root's bypass of them."""
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".cmnav-write-check-", dir=directory))
+    except OSError as err:
+        return f"cannot create anything in {directory} ({err.strerror or err})"
+    return None
 
 
 def output_file_problem(path: str | Path) -> str | None:
@@ -35,4 +46,4 @@ def _ancestor_problem(target: Path) -> str | None:
         return f"cannot create {target}: {ancestor} is a file, not a directory"
     if not os.access(ancestor, os.W_OK | os.X_OK):
         return f"cannot create {target}: {ancestor} is not writable by this user"
-    return None
+    return _probe(ancestor)

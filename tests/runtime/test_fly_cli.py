@@ -126,6 +126,7 @@ def test_check_validates_the_field_example_without_a_vehicle(models, tmp_path, c
     example = (ROOT / "examples" / "cmnav.toml").read_text()
     example = re.sub(r'^model_path = ".*"', f'model_path = "{models["good"]}"', example, flags=re.M)
     example = re.sub(r"^providers = .*", 'providers = ["CPUExecutionProvider"]', example, flags=re.M)
+    example = re.sub(r'^log_dir = ".*"', f'log_dir = "{tmp_path / "logs"}"', example, flags=re.M)  # /var/log/cmnav is the Jetson's
     code, out = _check(tmp_path, example, capsys)
     assert code == 0 and "config valid" in out and str(models["good"]) in out
 
@@ -145,3 +146,14 @@ def test_check_refuses_a_model_that_outputs_nan(models, tmp_path, capsys, caplog
     code, out = _check(tmp_path, _config(models["nan"], 9), capsys)
     assert code == 2 and "config valid" not in out
     assert "model refused, nothing armed" in caplog.text and "outputs NaN/Inf (action) on all-zero inputs" in caplog.text
+
+
+def test_json_error_object_for_a_file_that_is_not_utf8(tmp_path, mavlink_sniffer, notify_socket):
+    path = tmp_path / "cmnav.toml"
+    path.write_bytes(b"[vehicle]\nurl = \"udpin://caf\xe9:1\"\n")
+    env = dict(os.environ, NOTIFY_SOCKET=notify_socket.getsockname())
+    proc = subprocess.run([sys.executable, "-m", "cmnav", "fly", "--config", str(path), "--json"], capture_output=True,
+                          text=True, timeout=60, cwd=ROOT, env=env)  # fmt: skip
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    error = json.loads(proc.stdout.strip().splitlines()[-1])["error"]
+    assert error.startswith(f"config: {path} is not UTF-8 text"), error

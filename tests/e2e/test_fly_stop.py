@@ -11,12 +11,14 @@ COM_OF_LOSS_T (1 s): the vehicle must stay in the commanded state (or finish its
 
 from __future__ import annotations
 
+import json
 import signal
 import socket
 import time
 from pathlib import Path
 
 import pytest
+from mcap.reader import make_reader
 from pymavlink import mavutil
 
 from export.goal_seeker import export_goal_seeker
@@ -130,6 +132,17 @@ def test_stop_signal_in_a_dry_run_ends_in_the_runtimes_safe_state(goal_seeker, t
         (episode,) = summary["episodes"]
         assert episode["outcome"] == "aborted" and episode["abort_reason"] == "stopped by SIGTERM"
         assert episode["frames"] > 0 and episode["time_s"] > 0.0
+        assert {"event": "stop", "cause": "SIGTERM", "response": "hover_then_hold"}.items() <= _stop_event(episode["log"]).items()
+
+
+def _stop_event(log_path: str) -> dict:
+    """The episode's flight log records the stop on its /watchdog channel."""
+    with open(log_path, "rb") as f:
+        for _, _channel, message in make_reader(f).iter_messages(topics=["/watchdog"]):
+            event = json.loads(message.data)
+            if event["event"] == "stop":
+                return event
+    raise AssertionError(f"no stop event in {log_path}")
 
 
 def test_stop_signal_while_waiting_for_the_pilot_leaves_the_vehicle_alone(goal_seeker, tmp_path):

@@ -15,10 +15,13 @@ import socket
 from pathlib import Path
 
 import pytest
+from pymavlink.dialects.v20 import common as mavlink
 
 from export.goal_seeker import export_goal_seeker
 from sim.sitl_session import free_port
-from tests.e2e.fly_helpers import NotifyListener, Sitl, finish_fly, fly_config, start_fly
+from tests.e2e.fly_helpers import (
+    READY_TIMEOUT_S, MavlinkRouter, NotifyListener, Pilot, Sitl, finish_fly, fly_config, start_fly,
+)  # fmt: skip
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -82,3 +85,45 @@ def test_disk_full_in_offboard_costs_the_log_not_the_flight(goal_seeker, tmp_pat
     assert log_text.count("flight log: writing") == 1  # logged once
     assert "Traceback" not in log_text and "landed and disarmed" in log_text
     assert "OFFBOARD" in _landed_without_failsafe(trace)
+
+
+def test_full_disk_answers_the_pilots_switch_to_offboard_with_hold(goal_seeker, tmp_path):
+    """Pilot mode: the pilot's switch into offboard cannot be prevented, only answered — the runtime
+    hovers and commands Hold at once, records the refusal, and never flies the policy."""
+    runtime_port, pilot_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
+    router = MavlinkRouter(runtime_port, pilot_port)
+    sitl = Sitl(tmp_path, router.port)
+    notify = NotifyListener(tmp_path / "notify")
+    pilot = Pilot(pilot_port)
+    proc = None
+    try:
+        config = fly_config(goal_seeker, runtime_port, sitl.camera_port, sitl.episode["goal_rel_home_enu_m"], tmp_path / "logs",
+                            "max_episodes = 1")  # fmt: skip
+        proc = start_fly(tmp_path, config, notify, file_size_limit_bytes=NOTHING_FITS)
+        assert notify.ready.wait(READY_TIMEOUT_S), "no READY"
+        pilot.wait(lambda: pilot.heartbeat is not None, 10.0, "vehicle heartbeat")
+        pilot.command_until_accepted(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [1.0], 20.0, "arm")
+        pilot.command_until_accepted(mavlink.MAV_CMD_NAV_TAKEOFF, [float("nan")] * 7, 5.0, "takeoff")
+        takeoff_alt_m = sitl.episode["takeoff_alt_m"]
+        pilot.wait(lambda: pilot.in_hold() and pilot.height_m > 0.9 * takeoff_alt_m, 30.0, "takeoff done, Hold")
+        pilot.command_until_accepted(mavlink.MAV_CMD_DO_SET_MODE, [mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 6.0, 0.0],
+                                     5.0, "switch to offboard")  # fmt: skip
+        code, summary = finish_fly(proc, tmp_path)
+        pilot.wait(pilot.in_hold, 10.0, "Hold commanded by the runtime")
+    finally:
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        pilot.close()
+        sitl.stop()
+        router.close()
+        notify.close()
+    log_text = (tmp_path / "fly.log").read_text(errors="replace")
+    assert code == 0, f"{summary}\n{log_text[-3000:]}"
+    (episode,) = summary["episodes"]
+    assert episode["outcome"] == "refused" and "the flight log cannot be written" in episode["abort_reason"]
+    assert "episode 1 refused, hover then Hold" in log_text and "Traceback" not in log_text
+    trace = sitl.trace()
+    modes = [mode for _, mode in trace["mode_log"]]
+    assert modes[-2:] == ["OFFBOARD", "HOLD"], modes
+    assert not any("ailsafe" in text for _, text in trace["events"])

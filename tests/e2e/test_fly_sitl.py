@@ -11,21 +11,17 @@
 from __future__ import annotations
 
 import socket
-import time
 from pathlib import Path
 
 import pytest
-from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
 from export.goal_seeker import export_goal_seeker
 from runtime.replay import replay_log
 from sim.sitl_session import free_port
-from tests.e2e.fly_helpers import LOOPBACK, READY_TIMEOUT_S, MavlinkRouter, NotifyListener, Sitl, finish_fly, fly_config, start_fly
+from tests.e2e.fly_helpers import READY_TIMEOUT_S, MavlinkRouter, NotifyListener, Pilot, Sitl, finish_fly, fly_config, start_fly
 
 pytestmark = pytest.mark.timeout(180)
-
-PX4_MAIN_MODE_AUTO, PX4_SUB_MODE_LOITER = 4, 3  # Hold
 
 
 @pytest.fixture(scope="module")
@@ -68,54 +64,6 @@ def test_dry_run_flies_to_the_goal_notifies_systemd_and_replays(goal_seeker, tmp
     report = replay_log(episode["log"])
     assert report.same_model and report.steps == episode["frames"]
     assert report.max_abs_diff <= 1e-5
-
-
-class Pilot:
-    """A ground station / RC pilot over pymavlink: arms, takes off, selects offboard."""
-
-    def __init__(self, port: int) -> None:
-        self.link = mavutil.mavlink_connection(f"udpin:{LOOPBACK}:{port}", source_system=255, source_component=190)
-        self.heartbeat = None
-        self.height_m = 0.0
-
-    def _recv(self, timeout_s: float):
-        msg = self.link.recv_match(blocking=True, timeout=timeout_s)
-        if msg is not None and msg.get_srcSystem() == 1:
-            if msg.get_type() == "HEARTBEAT" and msg.get_srcComponent() == 1:
-                self.heartbeat = msg
-            elif msg.get_type() == "LOCAL_POSITION_NED":
-                self.height_m = -msg.z
-        return msg
-
-    def wait(self, predicate, timeout_s: float, what: str) -> None:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            self._recv(0.05)
-            if predicate():
-                return
-        raise AssertionError(f"{what} not seen within {timeout_s} s")
-
-    def command_until_accepted(self, command: int, params: list[float], timeout_s: float, what: str) -> None:
-        """COMMAND_LONG, repeated until the vehicle ACKs it as accepted (e.g. arming waits for health)."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            self.link.mav.command_long_send(1, 1, command, 0, *(params + [0.0] * (7 - len(params))))
-            ack_deadline = time.monotonic() + 0.5
-            while time.monotonic() < ack_deadline:
-                msg = self._recv(0.05)
-                if msg is not None and msg.get_type() == "COMMAND_ACK" and msg.command == command:
-                    if msg.result == mavlink.MAV_RESULT_ACCEPTED:
-                        return
-                    break
-            time.sleep(0.2)
-        raise AssertionError(f"{what} not accepted within {timeout_s} s")
-
-    def in_hold(self) -> bool:
-        mode = self.heartbeat.custom_mode if self.heartbeat else 0
-        return (mode >> 16) & 0xFF == PX4_MAIN_MODE_AUTO and (mode >> 24) & 0xFF == PX4_SUB_MODE_LOITER
-
-    def close(self) -> None:
-        self.link.close()
 
 
 def test_pilot_mode_waits_for_the_pilot_then_flies(goal_seeker, tmp_path):

@@ -13,10 +13,17 @@ What it times (p50 / p99 / best over repeated calls, in milliseconds):
   fingerprints must be the ones the model's metadata names) under ``torch.inference_mode``,
   numpy in and numpy out as the runtime would, with 1 and 2 threads (and on CUDA when present);
   skipped, with the reason, without checkpoints;
-- **SITL end to end**: one short ``cmnav sitl`` flight with the model; from its MCAP log's
-  per-step timing records: grab -> command (``frame_age``: the frame's capture by the SITL
-  camera to the velocity command sent), the ONNX step inside it (``inference``), and the
-  overhead around the step (grab -> command minus inference, per step).
+- **SITL end to end**: one short ``cmnav sitl`` flight per CPU model file (fp32, and the int8
+  variant when it is next to the model), with the runtime on a core of its own as on the Jetson:
+  the runtime process pinned to the last CPU this process may use (``runtime.cpu_affinity``,
+  every thread) with 1 ONNX Runtime intra-op thread, the SITL vehicle (renderer, physics,
+  MAVLink) pinned to the others (``--no-pin``: neither pinned, ORT's default threads).  From each
+  MCAP log's per-step timing records: grab -> command (``frame_age``: the frame's capture by the
+  SITL camera to the velocity command sent), the ONNX step inside it (``inference``), the overhead
+  around the step (grab -> command minus inference, per step), the frame's age when the step
+  began (``frame_wait``), and where the overhead goes, stage by stage: the hop to the worker
+  thread (``executor_in``), preprocessing, the observation, the hop back to the event loop
+  (``executor_out``), the checks, and the MAVSDK send with its own executor hop (``send``).
 
 The rows compared with each other (every model file and torch at one thread count, or on one GPU
 provider) are timed in interleaved blocks of calls, the first call of each block untimed (it pays
@@ -89,6 +96,7 @@ class RuntimeBenchConfig:
     sitl_level: int = 0
     sitl_seed: int = 0
     sitl_timeout_s: float = 20.0
+    pin: bool = True  # the SITL runtime on a core of its own (1 intra-op thread), the vehicle on the others
     out_dir: Path = Path("runs/bench-runtime")
 
 
@@ -416,33 +424,66 @@ def _cuda_available() -> bool:
     return torch.cuda.is_available()
 
 
-def sitl_result(config: RuntimeBenchConfig) -> dict:
-    """One SITL flight with the model; grab -> command, step and overhead per step from its log."""
+# Stages of a step as the flight loop records them (runtime.flight), in order; frame_wait is
+# before the step, the rest add up to grab -> command minus frame_wait.
+OVERHEAD_STAGES = ("frame_wait", "executor_in", "preprocess", "observation", "executor_out", "checks", "send")
+
+
+def sitl_pinning(pin: bool) -> dict:
+    """Where the SITL runtime and vehicle run: {runtime_cpus, vehicle_cpus, runtime_threads, note}."""
+    allowed = sorted(os.sched_getaffinity(0))
+    if not pin:
+        return {"runtime_cpus": [], "vehicle_cpus": [], "runtime_threads": 0, "note": "not pinned (--no-pin)"}
+    if len(allowed) < 2:
+        return {"runtime_cpus": [], "vehicle_cpus": [], "runtime_threads": 1,
+                "note": f"one CPU ({allowed}): the runtime cannot have a core of its own; not pinned"}  # fmt: skip
+    return {"runtime_cpus": allowed[-1:], "vehicle_cpus": allowed[:-1], "runtime_threads": 1,
+            "note": f"runtime pinned to CPU {allowed[-1]} with 1 intra-op thread, SITL vehicle to CPUs {allowed[:-1]}"}  # fmt: skip
+
+
+def sitl_result(config: RuntimeBenchConfig, files: dict[str, Path]) -> dict:
+    """One SITL flight per CPU model file (fp32 and int8, not fp16, which is for GPUs), the runtime
+    pinned as :func:`sitl_pinning` says; per variant, grab -> command, the step, the overhead and
+    each stage's share from its log."""
     from sim.sitl_session import SitlError, SitlRequest, run_sitl
 
-    request = SitlRequest(config.model, config.sitl_level, config.sitl_seed, config.sitl_timeout_s, config.out_dir / "sitl")
-    try:
-        summary = run_sitl(request)
-    except SitlError as err:
-        return {"skipped": f"the SITL flight could not run: {err}"}
-    stages = read_step_timing(Path(summary["log"])) if summary.get("log") else {}
-    if not stages.get("frame_age"):
-        return {"skipped": f"the SITL flight recorded no policy step (outcome {summary['outcome']}, log {summary.get('log')})"}
-    e2e, inference, loop = (np.asarray(stages[k]) for k in ("frame_age", "inference", "step"))
-    return {
-        "outcome": summary["outcome"],
-        "level": config.sitl_level,
-        "seed": config.sitl_seed,
-        "steps": len(e2e),
-        "missed_deadlines": summary.get("missed_deadlines"),
-        "log": summary.get("log"),
-        "grab_to_command": latency_stats(e2e),
-        "step_onnx": latency_stats(inference),
-        "overhead": latency_stats(e2e - inference),
-        "loop_step": latency_stats(loop),
-        "loop_overhead": latency_stats(loop - inference),
-        "stage_ms": summary.get("stage_ms"),
-    }
+    pinning = sitl_pinning(config.pin)
+    flights: dict[str, dict] = {}
+    for variant, path in files.items():
+        if variant == "fp16":
+            continue
+        request = SitlRequest(
+            path, config.sitl_level, config.sitl_seed, config.sitl_timeout_s, config.out_dir / "sitl" / variant,
+            runtime_cpus=tuple(pinning["runtime_cpus"]), vehicle_cpus=tuple(pinning["vehicle_cpus"]),
+            runtime_threads=pinning["runtime_threads"],
+        )  # fmt: skip
+        try:
+            summary = run_sitl(request)
+        except SitlError as err:
+            flights[variant] = {"skipped": f"the SITL flight could not run: {err}"}
+            continue
+        stages = read_step_timing(Path(summary["log"])) if summary.get("log") else {}
+        if not stages.get("frame_age"):
+            flights[variant] = {"skipped": f"the SITL flight recorded no policy step (outcome {summary['outcome']}, log {summary.get('log')})"}
+            continue
+        e2e, inference, loop = (np.asarray(stages[k]) for k in ("frame_age", "inference", "step"))
+        flights[variant] = {
+            "model": str(path),
+            "outcome": summary["outcome"],
+            "steps": len(e2e),
+            "missed_deadlines": summary.get("missed_deadlines"),
+            "log": summary.get("log"),
+            "pinning": summary.get("pinning"),
+            "grab_to_command": latency_stats(e2e),
+            "step_onnx": latency_stats(inference),
+            "overhead": latency_stats(e2e - inference),
+            "loop_step": latency_stats(loop),
+            "loop_overhead": latency_stats(loop - inference),
+            "stages": {name: latency_stats(stages[name]) for name in OVERHEAD_STAGES if stages.get(name)},
+        }
+    if not flights:
+        return {"skipped": "no CPU model file to fly"}
+    return {"level": config.sitl_level, "seed": config.sitl_seed, "pinning": pinning, "flights": flights}
 
 
 def read_step_timing(log_path: Path) -> dict[str, list[float]]:
@@ -505,7 +546,7 @@ def run_runtime_bench(config: RuntimeBenchConfig) -> dict:
     torch_step, result["torch_skipped"] = _torch_networks(config, meta)
     result["onnx"], result["torch"] = step_rows(config, files, torch_step)
     result["variant_speedup"] = variant_speedups(result["onnx"], variant)
-    result["sitl"] = sitl_result(config) if config.sitl else {"skipped": "--no-sitl"}
+    result["sitl"] = sitl_result(config, files) if config.sitl else {"skipped": "--no-sitl"}
     peak = result["cpu"]["peak_gflop_s"]
     result["ideal_ms"] = round(flops["total"] / (peak * 1e9) * 1000.0, 4) if peak else None
     result["ratios"] = ratios(result)
@@ -554,10 +595,15 @@ def ratios(result: dict) -> dict:
     best_gemm = max((g["gflop_s"] for g in result["gemm"] if g["threads"] == result["cpu"]["cores"]), default=None)
     out["onnx_over_ideal"] = onnx2 and result["ideal_ms"] and round(onnx2["p50_ms"] / result["ideal_ms"], 4)
     out["onnx_over_gemm_ideal"] = onnx2 and best_gemm and round(onnx2["p50_ms"] / (result["flops"]["total"] / best_gemm / 1e6), 4)
-    sitl = result["sitl"]
-    out["overhead_p99_ms"] = None if "skipped" in sitl else sitl["overhead"]["p99_ms"]
-    out["e2e_p99_ms"] = None if "skipped" in sitl else sitl["grab_to_command"]["p99_ms"]
+    for variant, flight in _flown(result["sitl"]).items():
+        out[f"overhead_p99_ms_{variant}"] = flight["overhead"]["p99_ms"]
+        out[f"e2e_p99_ms_{variant}"] = flight["grab_to_command"]["p99_ms"]
     return out
+
+
+def _flown(sitl: dict) -> dict[str, dict]:
+    """variant -> its SITL flight's result, for the flights that recorded steps."""
+    return {v: f for v, f in sitl.get("flights", {}).items() if "skipped" not in f}
 
 
 def targets(result: dict) -> list[dict]:
@@ -574,9 +620,15 @@ def targets(result: dict) -> list[dict]:
         TARGET_ONNX_OVER_EAGER, "x", result["torch_skipped"] or f"no {TARGET_THREADS}-thread rows")  # fmt: skip
     add(f"ONNX step / ideal (p50 over FLOPs / peak of {result['cpu']['cores']} cores)", ratio["onnx_over_ideal"],
         TARGET_ONNX_OVER_IDEAL, "x", "no clock found for the peak")  # fmt: skip
-    why = sitl.get("skipped")
-    add("grab->command minus ONNX step (SITL, p99)", ratio["overhead_p99_ms"], TARGET_OVERHEAD_P99_MS, "ms", why)
-    add("grab->command end to end (SITL, p99)", ratio["e2e_p99_ms"], TARGET_E2E_P99_MS, "ms", why)
+    flown = _flown(sitl)
+    where = (sitl.get("pinning") or {}).get("note", "")
+    for variant, flight in flown.items():
+        add(f"grab->command minus ONNX step (SITL p99, {variant}; {where})", flight["overhead"]["p99_ms"], TARGET_OVERHEAD_P99_MS, "ms", None)
+        add(f"grab->command end to end (SITL p99, {variant}; {where})", flight["grab_to_command"]["p99_ms"], TARGET_E2E_P99_MS, "ms", None)
+    if not flown:
+        why = sitl.get("skipped") or "; ".join(f"{v}: {f['skipped']}" for v, f in sitl.get("flights", {}).items())
+        add("grab->command minus ONNX step (SITL, p99)", None, TARGET_OVERHEAD_P99_MS, "ms", why)
+        add("grab->command end to end (SITL, p99)", None, TARGET_E2E_P99_MS, "ms", why)
     return rows
 
 
@@ -653,11 +705,17 @@ def format_runtime_bench(result: dict) -> str:
     sitl = result["sitl"]
     if "skipped" in sitl:
         lines.append(f"| SITL: skipped ({sitl['skipped']}) | | | | |")
-    else:
-        for key, label in (("grab_to_command", "grab->command"), ("step_onnx", "ONNX step inside"),
-                           ("overhead", "grab->command minus step"), ("loop_step", "loop: frame taken->command")):  # fmt: skip
-            r = sitl[key]
-            lines.append(f"| SITL {label} | {r['p50_ms']:.3f} | {r['p99_ms']:.3f} | {r['best_ms']:.3f} | {r['n']} |")
+    for variant, flight in sitl.get("flights", {}).items():
+        if "skipped" in flight:
+            lines.append(f"| SITL {variant}: skipped ({flight['skipped']}) | | | | |")
+            continue
+        rows = [("grab_to_command", "grab->command"), ("step_onnx", "ONNX step inside"), ("overhead", "grab->command minus step"),
+                ("loop_step", "loop: frame taken->command")]  # fmt: skip
+        for key, label in rows:
+            r = flight[key]
+            lines.append(f"| SITL {variant} {label} | {r['p50_ms']:.3f} | {r['p99_ms']:.3f} | {r['best_ms']:.3f} | {r['n']} |")
+        for stage, r in flight["stages"].items():
+            lines.append(f"| SITL {variant} stage {stage} | {r['p50_ms']:.3f} | {r['p99_ms']:.3f} | {r['best_ms']:.3f} | {r['n']} |")
     if result["variant_speedup"]:
         lines += ["", "| variant | provider | threads | speed vs fp32, p50 (best) |", "|---|---|---:|---:|"]
         for s in result["variant_speedup"]:
@@ -672,7 +730,9 @@ def format_runtime_bench(result: dict) -> str:
         measured = "-" if t["measured"] is None else f"{t['measured']:.3f} {t['unit']}"
         status = t["status"] + (f" ({t['why_skipped']})" if t["status"] == "SKIP" else "")
         lines.append(f"| {t['name']} | {measured} | <= {t['target']:g} {t['unit']} | {status} |")
-    if "skipped" not in sitl:
-        lines.append(f"\nSITL flight: {sitl['outcome']}, level {sitl['level']} seed {sitl['seed']}, {sitl['steps']} steps, log {sitl['log']}")
+    if "pinning" in sitl:
+        lines.append(f"\nSITL: level {sitl['level']} seed {sitl['seed']}; {sitl['pinning']['note']}")
+    for variant, flight in _flown(sitl).items():
+        lines.append(f"SITL flight {variant}: {flight['outcome']}, {flight['steps']} steps, log {flight['log']}")
     lines += [f"WARNING: {w}" for w in result["warnings"]]
     return "\n".join(lines)

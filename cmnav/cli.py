@@ -41,7 +41,7 @@ def _cmd_export_policy(args: argparse.Namespace) -> int:
     if (problem := output_file_problem(args.model_out)) is not None:
         print(f"cmnav export: -o {args.model_out}: {problem}", file=sys.stderr)
         return 2
-    from export.policy_onnx import ExportError, export_policy
+    from export.policy_onnx import ExportError, VariantRefusedError, export_policy
     from runtime.contract import ContractMismatchError
     from runtime.log_reader import ReplayError
     from runtime.model import ModelLoadError
@@ -49,6 +49,12 @@ def _cmd_export_policy(args: argparse.Namespace) -> int:
     variants = tuple(v for v in args.variants.split(",") if v) if args.variants else ()
     try:
         report = export_policy(args.encoder, args.policy, args.model_out, recorded=args.recorded, variants=variants)
+    except VariantRefusedError as err:  # the fp32 model (and any other variant) was written
+        print(err.report.format())
+        if args.json:
+            print(json.dumps(err.report.to_json()))
+        print(f"cmnav export: {err}", file=sys.stderr)
+        return 2
     except (ExportError, ReplayError, ModelLoadError, ContractMismatchError) as err:
         print(f"cmnav export: {err}", file=sys.stderr)
         return 2
@@ -67,6 +73,12 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
     return 0
 
 
+def _given(args: argparse.Namespace, *names: str) -> dict:
+    """The options among ``names`` given on the command line (they default to None, so that the
+    config dataclass keeps the one default)."""
+    return {name: getattr(args, name) for name in names if getattr(args, name) is not None}
+
+
 def _cmd_train_cmwae(args: argparse.Namespace) -> int:
     from training.cmwae.train import CmwaeTrainConfig, train_cmwae
 
@@ -75,7 +87,8 @@ def _cmd_train_cmwae(args: argparse.Namespace) -> int:
         size=args.size, steps=args.steps, epochs=args.epochs if args.steps is None else None,
         batch_size=args.batch_size, lr=args.lr, lr_final=args.lr_final, mmd_weight=args.mmd_weight, seed=args.seed,
         device=args.device, workers=args.workers, checkpoint_every=args.checkpoint_every, resume=args.resume,
-        max_wall_s=None if args.minutes is None else args.minutes * 60.0,
+        max_wall_s=None if args.minutes is None else args.minutes * 60.0, init_from=args.init_from,
+        **_given(args, "precision", "corrupted_loss_weight"),
     )  # fmt: skip
     out = train_cmwae(config)
     print(f"checkpoint in {out}")
@@ -95,7 +108,7 @@ def _cmd_train_policy(args: argparse.Namespace) -> int:
         curriculum=CurriculumConfig(start_level=args.start_level, max_level=args.max_level,
                                     window_episodes=args.curriculum_window),
         checkpoint_every=args.checkpoint_every, resume=args.resume, init_from=args.init_from,
-        max_wall_s=None if args.minutes is None else args.minutes * 60.0,
+        max_wall_s=None if args.minutes is None else args.minutes * 60.0, **_given(args, "precision"),
     )  # fmt: skip
     out = train_policy(config)
     print(f"checkpoint in {out}")
@@ -110,6 +123,7 @@ def _cmd_eval_cmwae(args: argparse.Namespace) -> int:
     result = evaluate_cmwae(
         CmwaeEvalConfig(checkpoint=args.checkpoint, data_dir=args.data, split=args.split, out_dir=args.out,
                         device=args.device, max_images=args.max_images, seed=args.seed,
+                        **_given(args, "precision"),
                         **({} if args.patch_sides is None else {"patch_sides_px": args.patch_sides}))  # fmt: skip
     )
     print(result["table"])
@@ -129,6 +143,7 @@ def _cmd_eval_policy(args: argparse.Namespace) -> int:
     config = PolicyEvalConfig(
         policy_dir=args.policy, encoder_dir=args.encoder, levels=tuple(args.levels), conditions=tuple(args.conditions),
         episodes=args.episodes, batch_envs=args.batch_envs, device=args.device, seed=args.seed, out_dir=args.out,
+        **_given(args, "precision"),
     )  # fmt: skip
     result = evaluate_policy(config)
     print(format_table2(result))
@@ -190,7 +205,7 @@ def _cmd_bench_runtime(args: argparse.Namespace) -> int:
     config = RuntimeBenchConfig(
         model=Path(args.model), encoder=args.encoder and Path(args.encoder), policy=args.policy and Path(args.policy),
         sitl=not args.no_sitl, sitl_level=args.level, sitl_seed=args.seed, sitl_timeout_s=args.sitl_timeout,
-        out_dir=Path(args.out), variants=not args.no_variants,
+        out_dir=Path(args.out), variants=not args.no_variants, pin=not args.no_pin,
     )  # fmt: skip
     try:
         result = run_runtime_bench(quick(config) if args.quick else config)
@@ -252,7 +267,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--inject", action="append", default=[], metavar="KIND@SECONDS",
         help="inject a fault SECONDS after offboard start (repeatable): camera-stall, camera-garbage, "
         "camera-blackout, telemetry-loss, pilot-takeover, offboard-refused@0, inference-overrun, nan-action, "
-        "geofence, runtime-kill; the summary then lists each fault's trip, detection time and stop time",
+        "geofence, runtime-kill, vehicle-stuck; the summary then lists each fault's trip, detection time and stop time",
     )  # fmt: skip
     sitl.set_defaults(func=_cmd_sitl)
 
@@ -299,6 +314,11 @@ def build_parser() -> argparse.ArgumentParser:
     dataset.add_argument("--frames-per-room", type=int, default=16, help="views per room (default 16)")
     dataset.set_defaults(func=_cmd_dataset)
 
+    def add_precision(command: argparse.ArgumentParser) -> None:
+        command.add_argument("--precision", choices=["auto", "fp32", "bf16"],
+                             help="torch compute precision on the CPU (default auto: bf16 + channels_last where the CPU has "
+                             "AMX/AVX512-BF16, fp32 channels_last on AVX2, else fp32; the choice is logged)")  # fmt: skip
+
     train = sub.add_parser("train", help="train the CMWAE encoder or the navigation policy")
     train_sub = train.add_subparsers(dest="what", required=True, metavar="WHAT")
     cmwae = train_sub.add_parser(
@@ -327,6 +347,10 @@ def build_parser() -> argparse.ArgumentParser:
     cmwae.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints")
     cmwae.add_argument("--resume", action="store_true", help="continue from the train state in --out")
     cmwae.add_argument("--minutes", type=float, help="stop (with a checkpoint) after this wall-clock time")
+    cmwae.add_argument("--corrupted-loss-weight", type=float,
+                       help="weight of a corrupted image's reconstruction error against a pristine one's (default 1: the paper's mean)")  # fmt: skip
+    cmwae.add_argument("--init-from", metavar="CMWAE_DIR", help="start from this encoder checkpoint's weights (not its optimizer or step)")
+    add_precision(cmwae)
     cmwae.set_defaults(func=_cmd_train_cmwae)
 
     policy = train_sub.add_parser(
@@ -358,6 +382,7 @@ def build_parser() -> argparse.ArgumentParser:
     policy.add_argument("--init-from", metavar="POLICY_DIR",
                         help="start from this policy checkpoint (fine-tuning); when it was trained on another encoder, "
                         "its latent normalisation is re-estimated on --encoder")  # fmt: skip
+    add_precision(policy)
     policy.set_defaults(func=_cmd_train_policy)
 
     evaluate = sub.add_parser("eval", help="evaluate a trained encoder (Table I) or policy (Table II)")
@@ -382,6 +407,7 @@ def build_parser() -> argparse.ArgumentParser:
                             help="side range of the square patches in px at 224x224 (default 1-50, Table I's; "
                             "100-100: S2's training squares; 1-30: the policy's training patches)")  # fmt: skip
     eval_cmwae.add_argument("--json", action="store_true", help="print the result as JSON on the last line")
+    add_precision(eval_cmwae)
     eval_cmwae.set_defaults(func=_cmd_eval_cmwae)
 
     def int_list(text: str) -> list[int]:
@@ -409,6 +435,7 @@ def build_parser() -> argparse.ArgumentParser:
     eval_policy.add_argument("--seed", type=int, default=0, help="seed of the rooms")
     eval_policy.add_argument("--out", help="directory for table2.json/.md and plots (default POLICY/eval)")
     eval_policy.add_argument("--json", action="store_true", help="print the result as JSON on the last line")
+    add_precision(eval_policy)
     eval_policy.set_defaults(func=_cmd_eval_policy)
 
     pipeline = sub.add_parser(
@@ -438,7 +465,7 @@ def build_parser() -> argparse.ArgumentParser:
     export = sub.add_parser(
         "export",
         help="write an ONNX model for the runtime: trained encoder + policy, or the goal-seeker",
-        usage="cmnav export --encoder CKPT --policy CKPT -o MODEL.onnx [--recorded LOG.mcap] [--variants fp16,int8] [--json]\n"
+        usage="cmnav export --encoder CKPT --policy CKPT -o MODEL.onnx [--recorded LOG.mcap ...] [--variants fp16,int8] [--json]\n"
         "       cmnav export goal-seeker -o MODEL.onnx",
         description="Build one ONNX graph for the runtime's control step from a CMWAE encoder checkpoint (its encoder "
         "only) and a policy checkpoint: (gray, depth, state, GRU hidden) -> (action, next hidden, latent), batch 1, "
@@ -446,13 +473,17 @@ def build_parser() -> argparse.ArgumentParser:
         "fingerprints, data, seed, eval tables) in its metadata.  Refuses a policy trained on another encoder.  "
         "Checks ONNX Runtime against torch on random inputs (and on a flight log's frames with --recorded), "
         "max abs error <= 1e-4, then loads the file with the runtime's own loader.  --variants also writes "
-        "MODEL.fp16.onnx / MODEL.int8.onnx with their parity cost; `cmnav bench runtime` times them.",
+        "MODEL.fp16.onnx / MODEL.int8.onnx with their parity cost against the fp32 graph: int8 quantises the "
+        "convolutions only (the policy head stays fp32), calibrated on the first half of the --recorded flights, and is "
+        "written only if its max action error over >= 300 steps of the other half (GRU state carried) is <= 0.02, else "
+        "refused with the numbers (exit 2, the fp32 model is kept).  `cmnav bench runtime` times the variants.",
     )
     export.add_argument("--encoder", metavar="CKPT", help="CMWAE checkpoint directory (cmnav train cmwae), e.g. models/cmwae-s2")
     export.add_argument("--policy", metavar="CKPT", help="policy checkpoint directory (cmnav train policy)")
     export.add_argument("-o", "--output", dest="model_out", metavar="MODEL.onnx", help="path of the ONNX file to write")
-    export.add_argument("--recorded", metavar="LOG.mcap", help="flight log (MCAP, cmnav fly/sitl) whose frames and states join the parity "
-                        "check and calibrate int8")  # fmt: skip
+    export.add_argument("--recorded", metavar="LOG.mcap", nargs="+", action="extend",
+                        help="flight logs (MCAP, cmnav fly/sitl): the first one's frames and states join the parity check; "
+                        "the first half of them calibrate int8, the rest judge the variants")  # fmt: skip
     export.add_argument("--variants", default="", metavar="fp16,int8", help="comma-separated: fp16 (for GPU providers), int8 (static QDQ)")
     export.add_argument("--json", action="store_true", help="also print the export report as one JSON line")
     export.set_defaults(func=_cmd_export_policy)
@@ -484,14 +515,17 @@ def build_parser() -> argparse.ArgumentParser:
         "SITL grab->command; ratios against the targets",
         description="In one run: p50/p99 of preprocessing, the ONNX step with 1 and 2 intra-op threads (and its "
         "fp16/int8 variants found next to the model), the same networks in torch eager (with --encoder/--policy), "
-        "and grab->command in one short SITL flight; the model's FLOPs, this CPU's theoretical FP32 peak and its "
+        "and grab->command in one short SITL flight per CPU model (fp32 and int8), the runtime pinned to a core of its "
+        "own with 1 intra-op thread and the SITL vehicle on the other cores, with the overhead split by stage; the model's FLOPs, this CPU's theoretical FP32 peak and its "
         "achieved GEMM rate; and the ratios against the targets (ONNX <= 0.65x eager, <= 1.3x ideal, overhead "
         "<= 3 ms p99, end to end <= 25 ms p99) with PASS/MISS.",
     )
     bench_runtime.add_argument("--model", required=True, help="ONNX model with the runtime's contract (cmnav export)")
     bench_runtime.add_argument("--encoder", help="the CMWAE checkpoint the model was exported from (for the torch eager rows)")
     bench_runtime.add_argument("--policy", help="the policy checkpoint the model was exported from (for the torch eager rows)")
-    bench_runtime.add_argument("--no-sitl", action="store_true", help="skip the SITL flight (no end-to-end rows)")
+    bench_runtime.add_argument("--no-sitl", action="store_true", help="skip the SITL flights (no end-to-end rows)")
+    bench_runtime.add_argument("--no-pin", action="store_true", help="SITL: do not pin the runtime to a core of its own "
+                               "(default: runtime on the last CPU with 1 intra-op thread, the SITL vehicle on the others)")  # fmt: skip
     bench_runtime.add_argument("--no-variants", action="store_true", help="do not time MODEL.fp16.onnx / MODEL.int8.onnx")
     bench_runtime.add_argument("--level", type=int, default=0, help="SITL curriculum level (default 0)")
     bench_runtime.add_argument("--seed", type=int, default=0, help="SITL world seed (default 0)")

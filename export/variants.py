@@ -1,14 +1,11 @@
-"""The exported model's variants and where they are written (torch-free, so ``cmnav bench
-runtime`` finds them on a machine without torch, e.g. the Jetson)."""
+"""The exported model's variants and where they are written.  The naming is the runtime's
+(``runtime.config.variant_path``: ``cmnav fly`` selects a variant with ``policy.variant``), so
+``cmnav bench runtime`` and the Jetson find them without torch."""
 
 from __future__ import annotations
 
-from pathlib import Path
+from runtime.config import MODEL_VARIANTS, variant_path
 
-VARIANTS = ("fp16", "int8")
+VARIANTS = tuple(v for v in MODEL_VARIANTS if v != "fp32")
 
-
-def variant_path(path: str | Path, variant: str) -> Path:
-    """Where a variant of ``path`` is written: ``model.onnx`` -> ``model.fp16.onnx``."""
-    path = Path(path)
-    return path.with_name(f"{path.stem}.{variant}{path.suffix or '.onnx'}")
+__all__ = ["VARIANTS", "variant_path"]

@@ -20,6 +20,7 @@ from pathlib import Path
 
 from .camera.realsense import RealSenseConfig
 from .contract import CONTROL_PERIOD_S, ActionLimits
+from .contract.constants import MAX_INCLINATION_RAD, MAX_SPEED_M_S
 
 
 class ConfigError(ValueError):
@@ -52,6 +53,8 @@ _WATCHDOG_RANGES = {
     "hold_grace_s": (0.0, 5.0, "s", "the hover before Hold ends"),
     "geofence_radius_m": (0.0, 200.0, "m", "a fence the vehicle can reach"),
     "altitude_max_m": (0.0, 120.0, "m", "a band below the usual 120 m ceiling"),
+    "tracking_window_s": (CONTROL_PERIOD_S, 5.0, "s", "a stuck vehicle is caught within seconds"),
+    "tilt_window_s": (0.0, 2.0, "s", "a flip is caught before the vehicle falls"),
 }
 _VEHICLE_TIMEOUT_MAX_S = {"connect_timeout_s": 600.0, "command_timeout_s": 10.0, "health_timeout_s": 600.0,
                           "takeoff_timeout_s": 300.0, "land_timeout_s": 600.0}  # fmt: skip
@@ -79,6 +82,21 @@ class WatchdogConfig:
     altitude_max_m: float = 8.0
     hold_grace_s: float = 1.0  # hover this long after a trip, then offboard.stop() (PX4 Hold)
     period_s: float = 0.02  # how often the watchdog task checks the time-based trips
+    # Tracking (runtime.tracking): the measured velocity against the command passed through a
+    # first-order lag of tracking_lag_s; an error (vehicle frame, m/s) above tracking_error_max_m_s
+    # for longer than tracking_window_s trips.  Tuned on SITL flights of the default model (levels 0
+    # and 3, mostly at 2 m/s: error p95 0.33 m/s, max 0.35 m/s; the largest error held for a whole
+    # window 0.14-0.18 m/s) and the goal-seeker, with room for a real PX4: 2.0 m/s commanded levels
+    # at ~1.6 m/s and the height drifts ~0.3 m/s (0.5 m/s together; tests/runtime/test_tracking.py
+    # flies that model); a stuck vehicle commanded the goal-seeker's 1 m/s cruise shows 1 m/s.
+    tracking_error_max_m_s: float = 0.8
+    tracking_window_s: float = 1.0
+    tracking_lag_s: float = 0.5
+    # Attitude: tilt (body up axis vs world up) above this for longer than tilt_window_s trips: the
+    # vehicle is flipped or tumbling.  PX4's failure detector uses the same defaults (FD_FAIL_R/P
+    # 60 deg, FD_FAIL_R/P_TTRI 0.3 s); the contract's inclination limit (45 deg) is the floor.
+    tilt_max_deg: float = 60.0
+    tilt_window_s: float = 0.3
 
     def __post_init__(self) -> None:
         for key in (
@@ -90,8 +108,28 @@ class WatchdogConfig:
             "altitude_max_m",
             "hold_grace_s",
             "period_s",
+            "tracking_window_s",
+            "tilt_window_s",
         ):
             _positive(f"watchdog.{key}", getattr(self, key))
+        _require(
+            isinstance(self.tracking_error_max_m_s, (int, float)) and 0.1 <= self.tracking_error_max_m_s <= MAX_SPEED_M_S,
+            "watchdog.tracking_error_max_m_s",
+            self.tracking_error_max_m_s,
+            f"in [0.1, {MAX_SPEED_M_S}] m/s (the contract's top speed: a larger bound could never trip)",
+        )
+        _require(
+            isinstance(self.tracking_lag_s, (int, float)) and 0.05 <= self.tracking_lag_s <= 2.0,
+            "watchdog.tracking_lag_s",
+            self.tracking_lag_s,
+            "in [0.05, 2] s (the velocity controller's time constant)",
+        )
+        _require(
+            isinstance(self.tilt_max_deg, (int, float)) and math.degrees(MAX_INCLINATION_RAD) <= self.tilt_max_deg < 180.0,
+            "watchdog.tilt_max_deg",
+            self.tilt_max_deg,
+            f"in [{math.degrees(MAX_INCLINATION_RAD):.0f}, 180) deg (no lower than the contract's inclination limit)",
+        )
         _require(
             self.step_trip_ms >= 1000.0 * CONTROL_PERIOD_S,
             "watchdog.step_trip_ms",
@@ -174,18 +212,70 @@ class VehicleConfig:
             _within(f"vehicle.{key}", getattr(self, key), 0.0, _VEHICLE_TIMEOUT_MAX_S[key], "s", "a wait that ends")
 
 
+# The exported model's variants (``cmnav export --variants``): fp32 is the file ``model_path``
+# names; the others sit next to it as ``<stem>.<variant>.onnx`` (:func:`variant_path`).
+MODEL_VARIANTS = ("fp32", "fp16", "int8")
+
+
+def variant_path(path: str | Path, variant: str) -> Path:
+    """Where ``variant`` of the model ``path`` is: ``model.onnx`` -> ``model.int8.onnx`` (fp32: ``path``)."""
+    path = Path(path)
+    if variant == "fp32":
+        return path
+    return path.with_name(f"{path.stem}.{variant}{path.suffix or '.onnx'}")
+
+
+@dataclass(frozen=True)
+class TensorRtConfig:
+    """The TensorRT execution provider (Jetson): used when ``policy.providers`` names it.
+
+    TensorRT builds an engine for the model at the first step (minutes on a Jetson), so the
+    runtime warms the model up before it tells systemd READY, and keeps the engine in
+    ``engine_cache_dir`` so that later starts load it in seconds.  The directory must be writable
+    by the service (``ReadWritePaths=`` / ``StateDirectory=``, systemd/README.md)."""
+
+    fp16: bool = True  # let TensorRT run layers in fp16 (the model file stays fp32)
+    engine_cache_dir: Path = Path("/var/lib/cmnav/trt-engines")
+    max_workspace_mb: int = 1024  # TensorRT builder workspace
+
+    def __post_init__(self) -> None:
+        _require(
+            isinstance(self.max_workspace_mb, int) and 64 <= self.max_workspace_mb <= 65536,
+            "policy.tensorrt.max_workspace_mb",
+            self.max_workspace_mb,
+            "an integer in [64, 65536] MB",
+        )
+
+
 @dataclass(frozen=True)
 class PolicyConfig:
     """The ONNX model, where it runs, and the deployment's action limits."""
 
     model_path: Path = Path("model.onnx")
     model_sha256: str | None = None  # when set, the model file must have this SHA-256 (hex)
+    # Which export of the model flies: "fp32" (model_path itself), "fp16" or "int8" (the file next
+    # to it, model.int8.onnx); its metadata must name the same variant.
+    variant: str = "fp32"
     providers: tuple[str, ...] = ("CPUExecutionProvider",)  # in order of preference
     provider_fallback: bool = False  # drop unavailable providers (logged) instead of refusing to start
     intra_op_threads: int = 0  # 0 = ONNX Runtime's default
+    warmup_steps: int = 3  # steps run on blank inputs at load, before READY (a TensorRT engine is built here)
+    tensorrt: TensorRtConfig = field(default_factory=TensorRtConfig)
     limits: ActionLimits = field(default_factory=ActionLimits)
 
+    @property
+    def model_file(self) -> Path:
+        """The file that flies: ``model_path`` or its ``variant`` next to it."""
+        return variant_path(self.model_path, self.variant)
+
     def __post_init__(self) -> None:
+        _require(self.variant in MODEL_VARIANTS, "policy.variant", self.variant, f"one of {', '.join(MODEL_VARIANTS)}")
+        _require(
+            isinstance(self.warmup_steps, int) and 0 <= self.warmup_steps <= 100,
+            "policy.warmup_steps",
+            self.warmup_steps,
+            "an integer in [0, 100]",
+        )
         _require(len(self.providers) > 0, "policy.providers", self.providers, "a non-empty list of execution providers")
         _require(
             self.model_sha256 is None
@@ -194,12 +284,12 @@ class PolicyConfig:
             self.model_sha256,
             "64 hexadecimal digits (`sha256sum MODEL`)",
         )
-        cpus = os.cpu_count() or 1
+        cpus = len(os.sched_getaffinity(0))  # the CPUs this process may run on
         _require(
             isinstance(self.intra_op_threads, int) and 0 <= self.intra_op_threads <= cpus,
             "policy.intra_op_threads",
             self.intra_op_threads,
-            f"an integer in [0, {cpus}] (0 = ONNX Runtime's default; at most this machine's CPU count)",
+            f"an integer in [0, {cpus}] (0 = ONNX Runtime's default; at most the CPUs this process may run on)",
         )
 
 
@@ -321,6 +411,35 @@ class MissionConfig:
 
 
 @dataclass(frozen=True)
+class ProcessConfig:
+    """The runtime process on its computer (TOML table ``[runtime]``).
+
+    ``cpu_affinity``: the CPU ids the whole process (every thread: event loop, ONNX Runtime's
+    step, MAVSDK, the camera driver) is pinned to at start, before the model loads; empty = no
+    pinning.  Each must be one of the CPUs this process may run on (``os.sched_getaffinity``;
+    under systemd, what ``CPUAffinity=`` left it).  Pin the runtime to a core nothing else is
+    given, with ``policy.intra_op_threads = 1`` (one core, one thread)."""
+
+    cpu_affinity: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        allowed = sorted(os.sched_getaffinity(0))
+        ids = self.cpu_affinity
+        _require(
+            all(isinstance(i, int) and not isinstance(i, bool) for i in ids) and len(set(ids)) == len(ids),
+            "runtime.cpu_affinity",
+            list(ids),
+            "a list of distinct integer CPU ids",
+        )
+        _require(
+            all(i in allowed for i in ids),
+            "runtime.cpu_affinity",
+            list(ids),
+            f"CPU ids this process may run on: {allowed} (os.sched_getaffinity; systemd's CPUAffinity= narrows it)",
+        )
+
+
+@dataclass(frozen=True)
 class SystemdConfig:
     """Talking to systemd (``Type=notify``): READY, STATUS lines and WATCHDOG pings on
     ``$NOTIFY_SOCKET``; nothing is sent when systemd did not set it."""
@@ -339,8 +458,16 @@ class RuntimeConfig:
     camera: CameraConfig = field(default_factory=CameraConfig)
     mission: MissionConfig = field(default_factory=MissionConfig)
     systemd: SystemdConfig = field(default_factory=SystemdConfig)
+    runtime: ProcessConfig = field(default_factory=ProcessConfig)
 
     def __post_init__(self) -> None:
+        pinned = self.runtime.cpu_affinity
+        _require(
+            not pinned or self.policy.intra_op_threads <= len(pinned),
+            "policy.intra_op_threads",
+            self.policy.intra_op_threads,
+            f"<= the {len(pinned)} CPU(s) of runtime.cpu_affinity (more threads than pinned cores only take turns; 1 on one core)",
+        )
         goal = self.mission.goal_rel_home_enu_m
         if goal is None:
             return

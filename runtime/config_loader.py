@@ -165,7 +165,11 @@ def _resolve_paths(config: RuntimeConfig, base: Path) -> RuntimeConfig:
 
     return dataclasses.replace(
         config,
-        policy=dataclasses.replace(config.policy, model_path=absolute(config.policy.model_path)),
+        policy=dataclasses.replace(
+            config.policy,
+            model_path=absolute(config.policy.model_path),
+            tensorrt=dataclasses.replace(config.policy.tensorrt, engine_cache_dir=absolute(config.policy.tensorrt.engine_cache_dir)),
+        ),
         recorder=dataclasses.replace(config.recorder, log_dir=absolute(config.recorder.log_dir)),
         camera=dataclasses.replace(
             config.camera, replay=dataclasses.replace(config.camera.replay, path=absolute(config.camera.replay.path))
@@ -182,11 +186,14 @@ def _check_files(config: RuntimeConfig) -> None:
     policy = config.policy
     if not policy.model_path.is_file():
         raise ConfigError(f"policy.model_path = {str(policy.model_path)!r}: no such file (export one with `cmnav export`)")
+    if not policy.model_file.is_file():
+        raise ConfigError(f"policy.variant = {policy.variant!r}: no {policy.model_file} next to policy.model_path "
+                          f"(export it with `cmnav export ... --variants {policy.variant}`, or fly \"fp32\")")  # fmt: skip
     if policy.model_sha256 is not None:
-        actual = file_sha256(policy.model_path)
+        actual = file_sha256(policy.model_file)
         if actual != policy.model_sha256.lower():
             raise ConfigError(
-                f"policy.model_sha256 = {policy.model_sha256!r} but {policy.model_path} has SHA-256 {actual}: "
+                f"policy.model_sha256 = {policy.model_sha256!r} but {policy.model_file} has SHA-256 {actual}: "
                 "the model file is not the one the config names (copy the right file, or update the hash)"
             )
     known = ort.get_all_providers()

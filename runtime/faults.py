@@ -5,7 +5,8 @@ lasts for the rest of the flight.  Each kind is injected where it really happens
 
 - in the SITL vehicle (``python -m sim.sitl --inject``, times from the vehicle's own OFFBOARD
   entry): ``camera-stall``, ``camera-garbage``, ``camera-blackout``, ``telemetry-loss``,
-  ``pilot-takeover``, ``offboard-refused`` (only ``@0``: the vehicle refuses OFFBOARD when asked);
+  ``pilot-takeover``, ``offboard-refused`` (only ``@0``: the vehicle refuses OFFBOARD when asked),
+  ``vehicle-stuck`` (the vehicle stops following setpoints, without a collision);
 - in the runtime (``python -m runtime.sitl_flight --inject``, times from the start of
   :meth:`runtime.flight.FlightLoop.fly`; hooks in ``runtime.fault_injection``):
   ``inference-overrun`` and ``nan-action`` around the model step, ``geofence`` (the watchdog's
@@ -37,6 +38,7 @@ class FaultKind(str, Enum):
     NAN_ACTION = "nan-action"  # the model step returns NaN
     GEOFENCE = "geofence"  # the fence shrinks: the vehicle (or the goal) is outside it
     RUNTIME_KILL = "runtime-kill"  # SIGKILL of the runtime process
+    VEHICLE_STUCK = "vehicle-stuck"  # the vehicle stops following setpoints (motor failure, snagged frame)
 
 
 class FaultSite(str, Enum):
@@ -56,6 +58,7 @@ FAULT_SITE: dict[FaultKind, FaultSite] = {
     FaultKind.NAN_ACTION: FaultSite.RUNTIME,
     FaultKind.GEOFENCE: FaultSite.RUNTIME,
     FaultKind.RUNTIME_KILL: FaultSite.ORCHESTRATOR,
+    FaultKind.VEHICLE_STUCK: FaultSite.VEHICLE,
 }
 
 

@@ -8,7 +8,8 @@
   command gate; deadline = the control period (missed deadlines counted; the watchdog trips
   past ``step_trip_ms``); goal reached (within GOAL_REACHED_RADIUS_M) ends the episode;
 - watchdog task: the time-based trips and the hover -> Hold response;
-- state task: vehicle telemetry into the flight log at 10 Hz.
+- state task: vehicle telemetry into the flight log at 10 Hz, and each of the autopilot's
+  STATUSTEXTs once.
 
 :class:`FlightLoop` knows nothing about how offboard was entered: the SITL entry point arms, takes
 off and starts offboard itself; a field entry point waits for the pilot to switch to offboard.
@@ -43,7 +44,7 @@ from .contract import (
 )
 from .contract.constants import GOAL_REACHED_RADIUS_M
 from .model import PolicyModel
-from .policy_step import PolicyMemory, compute_step
+from .policy_step import PolicyMemory, StepResult, compute_step
 from .recorder import Recorder
 from .slots import LatestSlot
 from .timing import StageTimes
@@ -80,6 +81,7 @@ class EpisodeResult:
     watchdog_trips: list[dict] = field(default_factory=list)
     final_distance_m: float = float("nan")
     frames_rejected: int = 0  # unfit camera frames since FlightLoop.start (runtime.camera.validate)
+    tracking_error_peak_m_s: float = 0.0  # the largest tracking error sustained a whole window (runtime.tracking)
 
 
 class FlightLoop:
@@ -266,9 +268,15 @@ class FlightLoop:
                 self.recorder.log_frame(frame)
 
     async def _state_log_task(self) -> None:
+        status_seq_logged = 0
         while True:
+            state = self.vehicle.state()
             if self.recorder is not None:
-                self.recorder.log_state(time.monotonic_ns(), self.vehicle.state())
+                self.recorder.log_state(time.monotonic_ns(), state)
+                for text in state.status_texts:
+                    if text.seq > status_seq_logged:
+                        self.recorder.log_status_text(text)
+            status_seq_logged = state.status_texts[-1].seq if state.status_texts else status_seq_logged
             await asyncio.sleep(STATE_LOG_PERIOD_S)
 
     async def _watchdog_task(self) -> None:
@@ -334,13 +342,13 @@ class FlightLoop:
                 t_start + int(self.config.watchdog.step_trip_ms * _NS_PER_MS), now,
             )  # fmt: skip
             return False
-        self.watchdog.note_depth(frame.t_capture_ns, invalid_depth_fraction(frame.depth_m))
-        if self.recorder is not None:
-            self.recorder.log_step(frame, result)
-        if await self.watchdog.check_action(result.output.action, t_start, time.monotonic_ns()) is not None:
+        t_resumed = time.monotonic_ns()
+        if await self.watchdog.check_action(result.output.action, t_start, t_resumed) is not None:
+            self._after_command(frame, result)
             return False
         cmd_flu = action_to_velocity_flu(result.action_clipped, self.config.policy.limits)
         cmd = velocity_flu_to_mavsdk(cmd_flu)
+        t_checked = time.monotonic_ns()
         try:
             sent = await self.gate.send_policy(cmd)
         except VehicleError as err:
@@ -348,12 +356,20 @@ class FlightLoop:
             await self.watchdog.trip(TripCause.POLICY_ERROR, f"velocity command failed: {err}", now, now)
             return False
         t_cmd = time.monotonic_ns()
+        if sent:
+            self.watchdog.note_command(t_cmd, cmd_flu)
+        self._after_command(frame, result)
         self._memory.advance(result)
         stages_ms = {
-            "preprocess": (result.t_preprocessed_ns - t_start) / _NS_PER_MS,
+            "frame_wait": (t_start - frame.t_capture_ns) / _NS_PER_MS,  # the frame's age when the step began
+            "executor_in": (result.t_started_ns - t_start) / _NS_PER_MS,  # telemetry snapshot + hop to the worker thread
+            "preprocess": (result.t_preprocessed_ns - result.t_started_ns) / _NS_PER_MS,
             "observation": (result.t_observed_ns - result.t_preprocessed_ns) / _NS_PER_MS,
             "inference": (result.t_inferred_ns - result.t_observed_ns) / _NS_PER_MS,
-            "command": (t_cmd - result.t_inferred_ns) / _NS_PER_MS,
+            "executor_out": (t_resumed - result.t_inferred_ns) / _NS_PER_MS,  # back to the event loop (asyncio scheduling)
+            "checks": (t_checked - t_resumed) / _NS_PER_MS,  # NaN/Inf check, action -> velocity
+            "send": (t_cmd - t_checked) / _NS_PER_MS,  # the MAVSDK call, its executor hop included
+            "command": (t_cmd - result.t_inferred_ns) / _NS_PER_MS,  # executor_out + checks + send
             "step": (t_cmd - t_start) / _NS_PER_MS,
             "frame_age": (t_cmd - frame.t_capture_ns) / _NS_PER_MS,
         }
@@ -368,6 +384,13 @@ class FlightLoop:
             self.on_alive()
         episode.last_distance_m = float(np.linalg.norm(self._goal_enu_m - inputs.pos_enu_m))
         return episode.last_distance_m < GOAL_REACHED_RADIUS_M
+
+    def _after_command(self, frame: Frame, result: StepResult) -> None:
+        """Off the command's path (issue 15): the step's record and the depth statistics, once the
+        command went out (or the step was refused)."""
+        if self.recorder is not None:
+            self.recorder.log_step(frame, result)
+        self.watchdog.note_depth(frame.t_capture_ns, invalid_depth_fraction(frame.depth_m))
 
     async def _sleep_alive(self, duration_s: float) -> None:
         """Sleep ``duration_s`` (hovering before Hold) while still reporting the loop alive."""
@@ -407,6 +430,7 @@ class FlightLoop:
             watchdog_trips=self.watchdog.records(),
             final_distance_m=round(final_distance_m, 3),
             frames_rejected=self.frames_rejected,
+            tracking_error_peak_m_s=round(self.watchdog.tracking_sustained_peak_m_s, 3),
         )
 
 

@@ -43,6 +43,7 @@ from typing import Awaitable, TypeVar
 
 import numpy as np
 
+from .affinity import pin_process
 from .camera import CameraSource
 from .camera.realsense import RealSenseSource, RealSenseUnavailableError
 from .camera.replay_source import ReplayCameraSource
@@ -88,16 +89,18 @@ class FlyError(RuntimeError):
 
 
 def load_model(config: RuntimeConfig) -> PolicyModel:
-    """The configured model on the configured execution providers; :class:`FlyError` (exit 2) if
-    it is refused (not loadable, wrong signature or contract, provider unavailable)."""
+    """The configured model (``policy.variant`` of it) on the configured execution providers,
+    warmed up; :class:`FlyError` (exit 2) if it is refused (not loadable, wrong signature,
+    contract or variant, provider unavailable, TensorRT engine cache not writable)."""
     policy = config.policy
     try:
         providers = resolve_providers(policy.providers, policy.provider_fallback)
-        model = PolicyModel(policy.model_path, providers, policy.intra_op_threads)
+        model = PolicyModel(policy.model_file, providers, policy.intra_op_threads, policy.tensorrt, policy.variant)
+        model.warm_up(policy.warmup_steps)  # before READY: a TensorRT engine is built (or loaded) here
         check_outputs_finite(model)  # on the ground, before anything is armed
-        return model
     except (ModelLoadError, ContractMismatchError) as err:
         raise FlyError(EXIT_CONFIG, f"model refused, nothing armed: {err}") from err
+    return model
 
 
 def make_camera(config: CameraConfig) -> CameraSource:
@@ -368,6 +371,8 @@ def run_fly(config_path: str | Path, print_json: bool = False, check_only: bool 
     config and load the model, then exit (0 or 2) without touching the vehicle or camera."""
     try:
         config = load_config(config_path)
+        if config.runtime.cpu_affinity:  # before any thread of ONNX Runtime or MAVSDK exists
+            pin_process(config.runtime.cpu_affinity)
         if check_only:
             model = load_model(config)
     except (ConfigError, FlyError) as err:

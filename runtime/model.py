@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import os
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -19,6 +21,7 @@ import numpy as np
 import onnxruntime as ort
 from onnxruntime.capi import onnxruntime_pybind11_state as _ort_state
 
+from .config import TensorRtConfig
 from .contract import check_contract_metadata
 from .contract import constants as c
 from .contract.images import preprocess_depth, preprocess_gray
@@ -48,6 +51,10 @@ _LOAD_ERRORS = (
     _ort_state.NotImplemented,
 )
 _FIX = "export the model with `cmnav export` from this cmnav version"
+TENSORRT = "TensorrtExecutionProvider"
+CUDA = "CUDAExecutionProvider"
+CPU = "CPUExecutionProvider"
+KEY_VARIANT = "cmnav.variant"  # the export's variant in the model metadata (absent: fp32)
 
 
 class ModelLoadError(ValueError):
@@ -73,11 +80,15 @@ class PolicyModel:
     def __init__(
         self,
         path: str | Path,
-        providers: Sequence[str] = ("CPUExecutionProvider",),
+        providers: Sequence[str] = (CPU,),
         intra_op_threads: int = 0,
+        tensorrt: TensorRtConfig | None = None,
+        variant: str | None = None,
     ) -> None:
-        """Load ``path`` on ``providers`` (in order of preference); raise :class:`ModelLoadError`
-        or :class:`runtime.contract.ContractMismatchError` if it is not a model for this runtime."""
+        """Load ``path`` on ``providers`` (in order of preference; TensorRT with the options of
+        ``tensorrt``, default :class:`runtime.config.TensorRtConfig`); raise :class:`ModelLoadError`
+        or :class:`runtime.contract.ContractMismatchError` if it is not a model for this runtime,
+        or, with ``variant``, if its metadata names another variant (``cmnav.variant``)."""
         self.path = Path(path)
         if not self.path.is_file():
             raise ModelLoadError(f"model file {self.path} does not exist: check the path in the config")
@@ -86,15 +97,39 @@ class PolicyModel:
         options.intra_op_num_threads = intra_op_threads
         options.log_severity_level = 3
         try:
-            self._session = ort.InferenceSession(str(self.path), sess_options=options, providers=list(providers))
+            self._session = ort.InferenceSession(
+                str(self.path), sess_options=options, providers=session_providers(providers, tensorrt or TensorRtConfig())
+            )
         except _LOAD_ERRORS as err:
             raise ModelLoadError(f"{self.path} is not a loadable ONNX model ({_one_line(err)}): {_FIX}") from err
-        check_contract_metadata(self._session.get_modelmeta().custom_metadata_map, source=str(self.path))
+        metadata = self._session.get_modelmeta().custom_metadata_map
+        check_contract_metadata(metadata, source=str(self.path))
+        self.variant = metadata.get(KEY_VARIANT, "fp32")
+        if variant is not None and self.variant != variant:
+            raise ModelLoadError(
+                f"{self.path} is the {self.variant} export (its {KEY_VARIANT} metadata), not the {variant} one policy.variant "
+                "names: set policy.variant to the model's, or point policy.model_path at the fp32 file the variants sit next to"
+            )
         self.hidden_size = self._check_signature()
         self.providers = tuple(self._session.get_providers())
         self.sha256 = file_sha256(self.path)
         self._output_names = [c.ONNX_OUTPUT_ACTION, c.ONNX_OUTPUT_HIDDEN, c.ONNX_OUTPUT_LATENT]
-        log.info("loaded %s: hidden size %d, providers %s", self.path, self.hidden_size, self.providers)
+        log.info("loaded %s (%s): hidden size %d, providers %s", self.path, self.variant, self.hidden_size, self.providers)
+
+    def warm_up(self, steps: int) -> list[float]:
+        """Run ``steps`` steps on blank inputs and return their durations (ms): the first step of a
+        session allocates its buffers, and on TensorRT builds (or loads) the engine, so the
+        runtime pays for it here, before it reports READY, not in its first control step."""
+        blank = np.zeros((c.IMAGE_SIZE_PX, c.IMAGE_SIZE_PX), dtype=np.float32)
+        state = np.zeros(c.STATE_DIM, dtype=np.float32)
+        durations_ms = []
+        for _ in range(steps):
+            t0 = time.perf_counter()
+            self.step(blank, blank, state, self.initial_hidden())
+            durations_ms.append((time.perf_counter() - t0) * 1000.0)
+        if durations_ms:
+            log.info("warm-up on %s: %d steps, %s ms", self.providers, steps, ", ".join(f"{d:.1f}" for d in durations_ms))
+        return durations_ms
 
     def _check_signature(self) -> int:
         """Compare names, shapes and dtypes with the contract; return the GRU hidden size H."""
@@ -126,7 +161,8 @@ class PolicyModel:
 
     def log_metadata(self) -> dict[str, str]:
         """What a flight log records about this model (``cmnav replay`` finds and checks it by these)."""
-        return {"model": str(self.path.resolve()), "model_sha256": self.sha256, "model_providers": ",".join(self.providers)}
+        return {"model": str(self.path.resolve()), "model_sha256": self.sha256, "model_providers": ",".join(self.providers),
+                "model_variant": self.variant}
 
     def initial_hidden(self) -> np.ndarray:
         """The GRU state at reset: zeros (H,), float32."""
@@ -214,6 +250,36 @@ def resolve_providers(requested: Sequence[str], fallback: bool) -> tuple[str, ..
     if missing:
         log.warning("execution provider(s) %s not available; falling back to %s", missing, list(present))
     return present
+
+
+def session_providers(providers: Sequence[str], tensorrt: TensorRtConfig) -> list[str | tuple[str, dict]]:
+    """ONNX Runtime's provider list for ``providers``: TensorRT with fp16 as configured and its
+    engine and timing caches in ``tensorrt.engine_cache_dir`` (created; it must be writable),
+    every other provider with its defaults.  ONNX Runtime runs on the next provider in the list
+    whatever a provider cannot (CUDA -> CPU)."""
+    out: list[str | tuple[str, dict]] = []
+    for provider in providers:
+        if provider != TENSORRT:
+            out.append(provider)
+            continue
+        cache = tensorrt.engine_cache_dir
+        try:
+            cache.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise ModelLoadError(f"policy.tensorrt.engine_cache_dir {cache} cannot be created ({err}): give the service a "
+                                 "writable directory there (systemd/README.md: StateDirectory=cmnav)") from err  # fmt: skip
+        if not os.access(cache, os.W_OK | os.X_OK):
+            raise ModelLoadError(f"policy.tensorrt.engine_cache_dir {cache} is not writable by this user: chown it to the "
+                                 "service user or list it in ReadWritePaths= (systemd/README.md)")  # fmt: skip
+        out.append((provider, {
+            "trt_fp16_enable": tensorrt.fp16,
+            "trt_engine_cache_enable": True,
+            "trt_engine_cache_path": str(cache),
+            "trt_timing_cache_enable": True,
+            "trt_timing_cache_path": str(cache),
+            "trt_max_workspace_size": tensorrt.max_workspace_mb * (1 << 20),
+        }))  # fmt: skip
+    return out
 
 
 def _as_input(array: np.ndarray, shape: tuple[int, ...], name: str) -> np.ndarray:

@@ -58,6 +58,7 @@ class StepResult:
     t_preprocessed_ns: int
     t_observed_ns: int
     t_inferred_ns: int
+    t_started_ns: int = 0  # when compute_step began (in the flight loop: on the worker thread)
 
 
 class PolicyMemory:
@@ -101,6 +102,7 @@ def compute_step(
 
     Raises ``runtime.contract.ImageContractError`` for a frame the contract cannot preprocess.
     """
+    t_started_ns = clock_ns()
     gray = preprocess_gray(frame.gray_u8)
     depth = preprocess_depth(frame.depth_m)
     t_preprocessed_ns = clock_ns()
@@ -119,4 +121,5 @@ def compute_step(
         t_preprocessed_ns=t_preprocessed_ns,
         t_observed_ns=t_observed_ns,
         t_inferred_ns=t_inferred_ns,
+        t_started_ns=t_started_ns,
     )

@@ -11,6 +11,7 @@ Channels (topic: schema):
 - ``/policy/latent``: ``cmnav.Latent`` (64)
 - ``/timing``: ``cmnav.StepTiming`` (per-stage milliseconds of each step)
 - ``/watchdog``: ``cmnav.WatchdogEvent`` (supervision start with thresholds, trips, Hold)
+- ``/vehicle/status_text``: ``cmnav.StatusText`` (the autopilot's STATUSTEXTs, severity and text)
 
 Log times: the runtime's clock is CLOCK_MONOTONIC; MCAP log times are Unix-epoch nanoseconds, so
 each monotonic time is shifted by one offset taken when the log opens (kept in the file's
@@ -51,6 +52,7 @@ from .camera.frame import Frame
 from .config import RecorderConfig
 from .contract import CONTRACT_VERSION, VelocityBodyYawspeed
 from .policy_step import StepResult
+from .status_text import StatusText
 from .vehicle import VehicleState
 
 log = logging.getLogger(__name__)
@@ -66,6 +68,7 @@ TOPIC_COMMAND = "/vehicle/command"
 TOPIC_LATENT = "/policy/latent"
 TOPIC_TIMING = "/timing"
 TOPIC_WATCHDOG = "/watchdog"
+TOPIC_STATUS_TEXT = "/vehicle/status_text"
 CAMERA_FRAME_ID = "camera"
 
 _NUM_ARRAY = {"type": "array", "items": {"type": ["number", "null"]}}
@@ -97,6 +100,9 @@ _SCHEMAS: dict[str, tuple[str, str, dict[str, Any]]] = {
         "event": {"type": "string"}, "cause": {"type": ["string", "null"]}, "detail": {"type": ["string", "null"]},
         "t_s": {"type": ["number", "null"]}, "detect_ms": {"type": ["number", "null"]},
         "response": {"type": ["string", "null"]}, "hold_t_s": {"type": ["number", "null"]}}),
+    TOPIC_STATUS_TEXT: ("cmnav.StatusText", "The autopilot's STATUSTEXT: MAV_SEVERITY name, text; t_ns = receive time "
+                        "(CLOCK_MONOTONIC), seq = order of receipt", {
+        "t_ns": _INT, "seq": _INT, "severity": {"type": "string"}, "text": {"type": "string"}}),
 }  # fmt: skip
 
 
@@ -191,6 +197,10 @@ class Recorder:
 
     def log_watchdog(self, t_ns: int, event: dict) -> None:
         self._put(("watchdog", t_ns, dict(event)))
+
+    def log_status_text(self, text: StatusText) -> None:
+        """One of the autopilot's STATUSTEXTs, stamped with its receive time."""
+        self._put(("status_text", text.t_ns, text))
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Write what is queued, then close the file (its summary makes it seekable).  Never raises:
@@ -321,6 +331,9 @@ class Recorder:
                                                     "stages_ms": {k: round(v, 4) for k, v in stages.items()}})  # fmt: skip
         elif kind == "watchdog":
             self._log_json(TOPIC_WATCHDOG, log_time, payload)
+        elif kind == "status_text":
+            self._log_json(TOPIC_STATUS_TEXT, log_time, {"t_ns": t_ns, "seq": payload.seq, "severity": payload.severity,
+                                                         "text": payload.text})  # fmt: skip
         else:
             raise AssertionError(f"unknown record kind {kind!r}")
 

@@ -6,7 +6,8 @@ to ``--takeoff-alt-m`` and waits for Hold there, sets a hover setpoint, starts o
 the policy (:class:`runtime.flight.FlightLoop`) until within GOAL_REACHED_RADIUS_M of the goal,
 the time limit or an abort, hovers, Holds, lands, waits for disarm and writes the summary JSON.
 If the autopilot refuses offboard, it records the trip (``offboard_refused``), commands Hold and
-lands without flying; if the pilot takes over, it stops commanding and does nothing more.
+lands without flying; if the pilot takes over, it stops commanding and does nothing more; after
+a ``vehicle_fault`` trip with the vehicle disarmed (a crash), there is nothing to land.
 ``--inject`` (tests only) injects the runtime's faults of ``runtime.faults``.
 
 Unlike the field program this one arms and takes off by itself: that is what a SITL dry run is.
@@ -15,7 +16,8 @@ Exit codes: 0 success; 1 timeout or aborted in flight; 2 the episode could not b
 refused, no autopilot, not healthy, takeoff failed, ...).  The summary is written in every case
 it can be: ``{outcome: success|timeout|aborted, abort_reason, time_s, frames, missed_deadlines,
 step_ms {p50, p99}, stage_ms {stage: {p50, p99}}, watchdog_trips [...], log,
-t_launch_to_offboard_s, goal_rel_home_enu_m, final_distance_m, t_episode_start_s, injections, ...}``;
+t_launch_to_offboard_s, goal_rel_home_enu_m, final_distance_m, tracking_error_peak_m_s, t_episode_start_s,
+injections, ...}``;
 ``time_s`` runs from offboard start to the goal, ``t_launch_to_offboard_s`` from this process's
 start to offboard confirmed by telemetry; ``t_episode_start_s`` is when the episode started (the
 zero of the trips' ``t_s``) and ``injections`` ``[{kind, t_s}]`` when each injected fault first
@@ -35,8 +37,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .affinity import pin_process
 from .camera.sim_source import SimCameraSource
-from .config import PolicyConfig, RecorderConfig, RuntimeConfig, VehicleConfig
+from .config import PolicyConfig, ProcessConfig, RecorderConfig, RuntimeConfig, VehicleConfig
 from .contract import HOVER, ContractMismatchError
 from .fault_injection import FaultyPolicy, shrink_geofence, shrink_geofence_at
 from .faults import FaultKind, FaultSite, Injection, InjectionError, parse_injection
@@ -53,6 +56,7 @@ log = logging.getLogger("runtime.sitl_flight")
 
 T_IMPORT_NS = time.monotonic_ns()
 FIRST_FRAME_TIMEOUT_S = 10.0
+DISARM_REPORT_TIMEOUT_S = 1.5  # after a vehicle fault: a crashed vehicle's disarm shows within a HEARTBEAT
 LOG_NAME = "flight.mcap"
 
 
@@ -80,6 +84,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--log-dir", type=Path, required=True, help=f"directory for the MCAP log ({LOG_NAME})")
     parser.add_argument("--summary", type=Path, required=True, help="where to write the summary JSON")
     parser.add_argument("--providers", default="CPUExecutionProvider", help="ONNX Runtime execution providers, comma-separated")
+    parser.add_argument("--cpu-affinity", default="", metavar="CPU,...",
+                        help="pin this process to these CPU ids (runtime.cpu_affinity of cmnav fly); default: no pinning")
+    parser.add_argument("--intra-op-threads", type=int, default=0, help="ONNX Runtime intra-op threads (0 = its default)")
     parser.add_argument("--inject", action="append", default=[], metavar="KIND@SECONDS",
                         help="fault injection for tests (repeatable): inference-overrun, nan-action or geofence, "
                         "SECONDS after offboard start")  # fmt: skip
@@ -100,6 +107,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error(f"--takeoff-alt-m {args.takeoff_alt_m}: expected a height in (0, 50) m above home")
     if args.timeout_s <= 0.0:
         parser.error(f"--timeout-s {args.timeout_s}: expected a positive number of seconds")
+    try:
+        args.process = ProcessConfig(cpu_affinity=tuple(int(v) for v in args.cpu_affinity.split(",") if v.strip()))
+        args.policy = PolicyConfig(model_path=args.model, providers=tuple(args.providers.split(",")), intra_op_threads=args.intra_op_threads)
+    except ValueError as err:  # ConfigError names the key
+        parser.error(f"--cpu-affinity {args.cpu_affinity!r} / --intra-op-threads {args.intra_op_threads}: {err}")
     return args
 
 
@@ -109,10 +121,13 @@ async def fly_episode(args: argparse.Namespace, summary: dict, signals: StopSign
     records ``summary["stop"]`` and what was flown, and re-raises the cancellation."""
     flight = FlightPhase()
     config = RuntimeConfig(
-        policy=PolicyConfig(model_path=args.model, providers=tuple(args.providers.split(","))),
+        policy=args.policy,
         vehicle=VehicleConfig(url=f"udpin://127.0.0.1:{args.mavlink_port}"),
         recorder=RecorderConfig(log_dir=args.log_dir),
+        runtime=args.process,
     )
+    if config.runtime.cpu_affinity:  # before ONNX Runtime's and MAVSDK's threads exist
+        summary["cpu_affinity"] = list(pin_process(config.runtime.cpu_affinity))
     try:
         model = PolicyModel(config.policy.model_path, config.policy.providers, config.policy.intra_op_threads)
         check_outputs_finite(model)
@@ -177,6 +192,9 @@ async def fly_episode(args: argparse.Namespace, summary: dict, signals: StopSign
         if loop.watchdog.pilot_took_over:
             log.warning("the pilot took over: not landing, the vehicle is theirs")
             return result
+        if result.abort_reason == TripCause.VEHICLE_FAULT.value and not await _still_armed(vehicle):
+            log.warning("the autopilot reported a fault and disarmed: nothing to land")
+            return result
         flight.enter(Phase.LANDING)
         await vehicle.land()
         await vehicle.wait_disarmed()
@@ -197,6 +215,15 @@ async def fly_episode(args: argparse.Namespace, summary: dict, signals: StopSign
         await close_step("the flight log", lambda: in_daemon_thread("recorder-close", recorder.close))
         summary["recorder"] = vars(recorder.stats).copy()
         await close_step("MAVSDK", vehicle.close)
+
+
+async def _still_armed(vehicle: Vehicle) -> bool:
+    """Armed, as the next HEARTBEAT says (PX4 sends one a second: a disarm may not show yet)."""
+    try:
+        await vehicle.wait_until(lambda s: not s.armed, DISARM_REPORT_TIMEOUT_S, "disarmed")
+    except VehicleError:
+        return True
+    return False
 
 
 async def _offboard_refused(loop: FlightLoop, vehicle: Vehicle, err: VehicleError, t_request_ns: int) -> EpisodeResult:
@@ -256,6 +283,7 @@ def _fill(summary: dict, result: EpisodeResult) -> None:
         watchdog_trips=result.watchdog_trips,
         final_distance_m=result.final_distance_m,
         frames_rejected=result.frames_rejected,
+        tracking_error_peak_m_s=result.tracking_error_peak_m_s,
     )
 
 

@@ -26,6 +26,7 @@ from .config import VehicleConfig
 from .contract import HOVER, VelocityBodyYawspeed
 from .contract.frames import euler_from_quat, ned_to_enu, quat_conjugate, quat_ned_frd_to_enu_flu, quat_rotate
 from .shutdown import in_daemon_thread
+from .status_text import StatusText, append_status_text
 
 log = logging.getLogger(__name__)
 
@@ -83,11 +84,13 @@ class VehicleState:
     flight_mode: str = "UNKNOWN"
     t_mode_ns: int = 0
     armed: bool = False
+    t_armed_ns: int = 0
     in_air: bool = False
     landed_state: str = "UNKNOWN"
     health: VehicleHealth = field(default_factory=VehicleHealth)
     t_health_ns: int = 0
     home_enu_m: np.ndarray | None = None
+    status_texts: tuple[StatusText, ...] = ()  # the latest STATUSTEXTs, oldest first (runtime.status_text)
 
     @property
     def t_telemetry_ns(self) -> int:
@@ -183,9 +186,10 @@ class Vehicle:
             "landed": (tel.subscribe_landed_state, lambda s: {"landed_state": s.name}),
             "health": (tel.subscribe_health, _health_fields),
             "home": (tel.subscribe_home, _home_fields),
+            "status_text": (tel.subscribe_status_text, self._status_text_fields),
         }
         stamp_key = {"posvel": "t_posvel_ns", "attitude": "t_att_ns", "angvel": "t_angvel_ns",
-                     "mode": "t_mode_ns", "health": "t_health_ns"}  # fmt: skip
+                     "mode": "t_mode_ns", "armed": "t_armed_ns", "health": "t_health_ns"}  # fmt: skip
         for name, (subscribe, convert) in handlers.items():
             task = asyncio.create_task(self._follow(subscribe, convert, stamp_key.get(name)), name=f"telemetry_{name}")
             task.add_done_callback(_log_subscription_end)
@@ -199,6 +203,14 @@ class Vehicle:
             self._fields.update(fields)
             self._updated.set()
             self._updated = asyncio.Event()
+
+    def _status_text_fields(self, message) -> dict:
+        """A STATUSTEXT (MAVSDK ``StatusText``: ``type`` is a StatusTextType named as MAV_SEVERITY)
+        appended to the kept ones, and logged at its severity."""
+        severity, text = message.type.name, str(message.text)
+        log.log(_LOG_LEVEL.get(severity, logging.INFO), "autopilot %s: %s", severity, text)
+        kept = self._fields.get("status_texts", ())
+        return {"status_texts": append_status_text(kept, time.monotonic_ns(), severity, text)}  # type: ignore[arg-type]
 
     def state(self) -> VehicleState:
         """The latest telemetry as a :class:`VehicleState` snapshot."""
@@ -287,7 +299,19 @@ class Vehicle:
         MAVSDK sends it at once and then re-sends the last one at 20 Hz by itself.
         """
         setpoint = MavsdkVelocityBodyYawspeed(cmd.forward_m_s, cmd.right_m_s, cmd.down_m_s, cmd.yawspeed_deg_s)
-        await self._command("set_velocity_body", self._require(self._offboard).set_velocity_body(setpoint))
+        offboard = self._require(self._offboard)
+        blocking = getattr(offboard, "_plugin", None)  # MAVSDK 4's synchronous plugin behind the asyncio wrapper
+        if blocking is None:
+            await self._command("set_velocity_body", offboard.set_velocity_body(setpoint))
+        else:
+            # Called on the event loop, not through the wrapper's hop to the default executor and
+            # back: the C call only stores the setpoint and sends it (no answer is awaited, a
+            # fraction of a millisecond), while the two thread hops cost more than that and queue
+            # behind other work under load (issue 15, the step's "send" stage).
+            try:
+                blocking.set_velocity_body(setpoint)
+            except MavsdkError as err:
+                raise self._refused("set_velocity_body", err) from err
         self.setpoints_sent += 1
 
     async def _command(self, what: str, awaitable: Awaitable[T]) -> T:
@@ -298,14 +322,22 @@ class Vehicle:
                 f"{what}: no answer from the autopilot within {self.config.command_timeout_s} s: is the link up?"
             ) from err
         except MavsdkError as err:
-            raise VehicleCommandError(f"{what} refused: {err} (mode {self.state().flight_mode}, "
-                                      f"armed {self.state().armed}); check the autopilot's messages") from err  # fmt: skip
+            raise self._refused(what, err) from err
+
+    def _refused(self, what: str, err: MavsdkError) -> VehicleCommandError:
+        return VehicleCommandError(f"{what} refused: {err} (mode {self.state().flight_mode}, "
+                                   f"armed {self.state().armed}); check the autopilot's messages")  # fmt: skip
 
     @staticmethod
     def _require(plugin: T | None) -> T:
         if plugin is None:
             raise VehicleError("not connected to an autopilot: call Vehicle.connect() first")
         return plugin
+
+
+# The autopilot's severities as log levels (its CRITICAL and worse: errors of the flight).
+_LOG_LEVEL = {"EMERGENCY": logging.CRITICAL, "ALERT": logging.CRITICAL, "CRITICAL": logging.ERROR,
+              "ERROR": logging.ERROR, "WARNING": logging.WARNING, "DEBUG": logging.DEBUG}  # fmt: skip
 
 
 def _log_subscription_end(task: asyncio.Task) -> None:

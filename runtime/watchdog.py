@@ -5,8 +5,12 @@ flying on a stale command; the watchdog checks independently of the policy task.
 stale frame (or only bad frames: no valid frame for as long), step over its trip limit (or
 hung), NaN/Inf action, stale telemetry, pilot left offboard, depth invalid fraction above a
 limit for too long, geofence (horizontal distance from where supervision started, height band
-above home; a goal outside it is refused when the episode starts).  Before supervision, a
-refused start (offboard refused by the autopilot) is recorded with :meth:`Watchdog.refuse_start`.
+above home; a goal outside it is refused when the episode starts); and the outcome: the vehicle
+not following its velocity commands (``tracking``: error above a bound for longer than a window,
+``runtime.tracking``), tilted past a flip/tumble bound (``attitude``), or the autopilot's own word
+(``vehicle_fault``: a STATUSTEXT of severity CRITICAL or worse, or a disarm in flight).  Before
+supervision, a refused start (offboard refused by the autopilot) is recorded with
+:meth:`Watchdog.refuse_start`.
 
 Response to a trip: a zero-velocity (hover) setpoint at once, then ``offboard.stop()`` (PX4
 Hold) after ``hold_grace_s``.  Pilot left offboard: the runtime stops commanding at once and
@@ -35,6 +39,7 @@ import numpy as np
 
 from .command_gate import CommandGate
 from .config import WatchdogConfig
+from .tracking import TrackingMonitor, TrackingStatus, tilt_rad
 from .vehicle import MODE_OFFBOARD, VehicleError, VehicleState
 
 log = logging.getLogger(__name__)
@@ -54,6 +59,9 @@ class TripCause(str, Enum):
     GEOFENCE = "geofence"
     POLICY_ERROR = "policy_error"
     OFFBOARD_REFUSED = "offboard_refused"
+    TRACKING = "tracking"  # the vehicle does not follow its velocity commands
+    ATTITUDE = "attitude"  # tilted past tilt_max_deg: flipped or tumbling
+    VEHICLE_FAULT = "vehicle_fault"  # the autopilot says so: CRITICAL STATUSTEXT, disarmed in flight
 
 
 class Response(str, Enum):
@@ -116,6 +124,14 @@ class Watchdog:
         self._home_z_enu_m = 0.0
         self._invalid_since_ns: int | None = None
         self._hold_pending = False
+        self._tracking = TrackingMonitor(config.tracking_error_max_m_s, config.tracking_lag_s, config.tracking_window_s)
+        self._tracking_status: TrackingStatus | None = None
+        self._t_posvel_seen_ns = 0
+        self._t_att_seen_ns = 0
+        self._tilt_over_since_ns: int | None = None
+        self._tilt_rad = 0.0
+        self._status_seq_seen = 0
+        self._armed_seen = False
 
     # ------------------------------------------------------------------ state
 
@@ -137,6 +153,12 @@ class Watchdog:
         """Where supervision started (local ENU x, y, m): the centre of the horizontal geofence."""
         return self._start_xy_enu_m.copy()
 
+    @property
+    def tracking_sustained_peak_m_s(self) -> float:
+        """This episode's largest tracking error that held for a whole ``tracking_window_s`` (m/s):
+        a trip needs it above ``tracking_error_max_m_s``; in normal flight it shows the margin."""
+        return self._tracking.sustained_peak_m_s
+
     def records(self) -> list[dict]:
         return [t.record(self._t0_ns) for t in self.trips]
 
@@ -155,6 +177,16 @@ class Watchdog:
         self._home_z_enu_m = float(state.home_enu_m[2])
         self._invalid_since_ns = None
         self._hold_pending = False
+        cfg = self.config
+        self._tracking = TrackingMonitor(cfg.tracking_error_max_m_s, cfg.tracking_lag_s, cfg.tracking_window_s)
+        self._tracking.start(now_ns, state.vel_enu_m_s, state.yaw_enu_rad)
+        self._tracking_status = None
+        self._t_posvel_seen_ns = state.t_posvel_ns
+        self._t_att_seen_ns = 0
+        self._tilt_over_since_ns = None
+        # Only what the autopilot says from now on counts; it must be armed once to be disarmed.
+        self._status_seq_seen = state.status_texts[-1].seq if state.status_texts else 0
+        self._armed_seen = state.armed
         self.trips.clear()
         self.gate.open_for_policy()
 
@@ -189,6 +221,11 @@ class Watchdog:
         self._supervising = False
 
     # ------------------------------------------------------------------ per-step checks
+
+    def note_command(self, t_ns: int, cmd_flu: np.ndarray) -> None:
+        """A velocity command was sent at ``t_ns``: (vx, vy, vz[, wz]) body FLU m/s as the contract
+        maps the action, which PX4 flies in the vehicle frame V (yaw only): the tracking reference."""
+        self._tracking.command(t_ns, np.asarray(cmd_flu, dtype=np.float64)[:3])
 
     def note_depth(self, t_capture_ns: int, invalid_frac: float) -> None:
         """Record each frame's raw invalid-depth fraction for the too-long-invalid check."""
@@ -239,6 +276,9 @@ class Watchdog:
 
     async def _check_faults(self, inputs: WatchInputs) -> Trip | None:
         cfg, now, v = self.config, inputs.now_ns, inputs.vehicle
+        trip = await self._check_vehicle_fault(v, now)
+        if trip is not None:
+            return trip
         frame_limit = int(cfg.frame_stale_ms * _NS_PER_MS)
         t_frame_ref = max(inputs.t_last_frame_capture_ns, self._t0_ns)
         if now - t_frame_ref > frame_limit:
@@ -288,6 +328,55 @@ class Watchdog:
                     f"height {height_m:.2f} m above home outside [{cfg.altitude_min_m:.2f}, {cfg.altitude_max_m:.2f}] m",
                     v.t_posvel_ns, now,
                 )  # fmt: skip
+        return await self._check_outcome(v, now)
+
+    async def _check_vehicle_fault(self, v: VehicleState, now: int) -> Trip | None:
+        """The autopilot's own word: a STATUSTEXT of severity CRITICAL or worse, or a disarm."""
+        new = [t for t in v.status_texts if t.seq > self._status_seq_seen]
+        if new:
+            self._status_seq_seen = new[-1].seq
+        fault = next((t for t in new if t.is_fault), None)
+        if fault is not None:
+            return await self.trip(TripCause.VEHICLE_FAULT, f"autopilot {fault.severity}: {fault.text}", fault.t_ns, now)
+        if v.armed:
+            self._armed_seen = True
+        elif self._armed_seen:
+            self._armed_seen = False
+            return await self.trip(TripCause.VEHICLE_FAULT, "the autopilot disarmed in flight", v.t_armed_ns or now, now)
+        return None
+
+    async def _check_outcome(self, v: VehicleState, now: int) -> Trip | None:
+        """Tracking (the measured velocity follows the commands) and attitude (not flipped)."""
+        cfg = self.config
+        if v.t_posvel_ns > self._t_posvel_seen_ns:
+            self._t_posvel_seen_ns = v.t_posvel_ns
+            self._tracking_status = self._tracking.update(v.t_posvel_ns, v.vel_enu_m_s, v.yaw_enu_rad)
+        status = self._tracking_status
+        window_ns = int(cfg.tracking_window_s * _NS_PER_S)
+        if status is not None and status.over_since_ns is not None and now - status.over_since_ns > window_ns:
+            fwd, left, up = (round(float(e), 2) for e in status.error_vehicle_m_s)
+            return await self.trip(
+                TripCause.TRACKING,
+                f"velocity error {status.error_m_s:.2f} m/s (vehicle frame forward/left/up {fwd}/{left}/{up}) "
+                f"> {cfg.tracking_error_max_m_s:.2f} m/s for {(now - status.over_since_ns) / _NS_PER_S:.2f} s "
+                f"> {cfg.tracking_window_s:.2f} s: the vehicle does not follow its commands",
+                status.over_since_ns + window_ns, now,
+            )  # fmt: skip
+        if v.t_att_ns > self._t_att_seen_ns:
+            self._t_att_seen_ns = v.t_att_ns
+            self._tilt_rad = tilt_rad(v.quat_enu_flu)
+            if not math.degrees(self._tilt_rad) > cfg.tilt_max_deg:
+                self._tilt_over_since_ns = None
+            elif self._tilt_over_since_ns is None:
+                self._tilt_over_since_ns = v.t_att_ns
+        tilt_window_ns = int(cfg.tilt_window_s * _NS_PER_S)
+        if self._tilt_over_since_ns is not None and now - self._tilt_over_since_ns > tilt_window_ns:
+            return await self.trip(
+                TripCause.ATTITUDE,
+                f"tilt {math.degrees(self._tilt_rad):.0f} deg > {cfg.tilt_max_deg:.0f} deg for "
+                f"{(now - self._tilt_over_since_ns) / _NS_PER_S:.2f} s > {cfg.tilt_window_s:.2f} s: flipped or tumbling",
+                self._tilt_over_since_ns + tilt_window_ns, now,
+            )  # fmt: skip
         return None
 
     # ------------------------------------------------------------------ response

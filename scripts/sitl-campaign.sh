@@ -2,37 +2,137 @@
 # Fly one model in SITL over many seeds and levels and print the outcome table:
 #   bash scripts/sitl-campaign.sh MODEL.onnx "0 3" 20 [OUT_DIR]
 # (levels, seeds per level).  Each flight is `cmnav sitl --json`; the summaries go to
-# OUT_DIR/summaries.jsonl (default runs/sitl-campaign/<model name>).
+# OUT_DIR/summaries.jsonl (default runs/sitl-campaign/<model name>).  Besides outcomes it counts
+# the watchdog's trips: those in flights that did not crash (false alarms: nothing is injected
+# here), and the crashes the runtime caught within 1.5 s (tracking or vehicle_fault).
+#
+# Variants side by side (issue 15): VARIANTS="fp32 int8" flies each export of MODEL (fp32 = MODEL,
+# int8 = MODEL's int8 file next to it, see `cmnav export --variants`) on the same levels and seeds,
+# into OUT_DIR/<variant>/, and prints per level each variant's success rate with its Wilson 95 %
+# interval and whether it lies within the first variant's.  With REPLAY_VARIANT=int8 every flight
+# of the first variant is also replayed (`cmnav replay LOG --model <int8 file>`): the would-be
+# action differences of that variant on the first one's recorded frames and telemetry.
+#   VARIANTS="fp32 int8" REPLAY_VARIANT=int8 bash scripts/sitl-campaign.sh MODEL.onnx "0 3" 20
+# CMNAV / PYTHON pick the programs (default .venv/bin/cmnav, .venv/bin/python); TIMEOUT_S the
+# offboard time limit per flight.
 set -euo pipefail
 MODEL=$1
 LEVELS=${2:-"0"}
 SEEDS=${3:-20}
 OUT=${4:-runs/sitl-campaign/$(basename "$MODEL" .onnx)}
 CMNAV=${CMNAV:-.venv/bin/cmnav}
+PYTHON=${PYTHON:-.venv/bin/python}
 TIMEOUT_S=${TIMEOUT_S:-20}  # offboard time limit per flight (training episodes last 10 s)
-mkdir -p "$OUT"
-: > "$OUT/summaries.jsonl"
-for level in $LEVELS; do
-  for seed in $(seq 0 $((SEEDS - 1))); do
-    "$CMNAV" sitl --model "$MODEL" --level "$level" --seed "$seed" --timeout "$TIMEOUT_S" --out "$OUT/runs" --json 2>>"$OUT/sitl.log" \
-      | tail -n 1 >> "$OUT/summaries.jsonl" || true
+VARIANTS=${VARIANTS:-}
+REPLAY_VARIANT=${REPLAY_VARIANT:-}
+
+variant_file() {  # the file of variant $2 of model $1 (runtime.config.variant_path)
+  "$PYTHON" -c 'import sys; from runtime.config import variant_path; print(variant_path(sys.argv[1], sys.argv[2]))' "$1" "$2"
+}
+
+fly() {  # fly model $1 on every level and seed into $2
+  mkdir -p "$2"
+  : > "$2/summaries.jsonl"
+  for level in $LEVELS; do
+    for seed in $(seq 0 $((SEEDS - 1))); do
+      "$CMNAV" sitl --model "$1" --level "$level" --seed "$seed" --timeout "$TIMEOUT_S" --out "$2/runs" --json 2>>"$2/sitl.log" \
+        | tail -n 1 >> "$2/summaries.jsonl" || true
+    done
   done
-done
-.venv/bin/python - "$OUT/summaries.jsonl" <<'PY'
+}
+
+if [ -z "$VARIANTS" ]; then
+  fly "$MODEL" "$OUT"
+  "$PYTHON" - "$OUT/summaries.jsonl" <<'PY'
 import collections, json, statistics, sys
 rows = [json.loads(line) for line in open(sys.argv[1]) if line.strip().startswith("{")]
 by_level = collections.defaultdict(list)
+all_trips = collections.Counter()
 for r in rows:
     by_level[r["level"]].append(r)
-print("| level | flights | success % | crash % | timeout % | other | time_s (success, median) | step p99 ms (median) | watchdog trips |")
-print("|---|---|---|---|---|---|---|---|---|")
+print("| level | flights | success % | crash % | timeout % | other | time_s (success, median) | step p99 ms (median) | watchdog trips | trips without a crash | crashes caught <= 1.5 s | crash_detect_ms (median) | tracking error sustained, m/s (max, no crash) |")
+print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
 for level, rs in sorted(by_level.items()):
     n = len(rs)
     count = collections.Counter(r["outcome"] for r in rs)
     times = [r["time_s"] for r in rs if r["outcome"] == "success"]
-    p99 = [r["step_ms"]["p99"] for r in rs if r.get("step_ms")]
+    p99 = [r["step_ms"]["p99"] for r in rs if (r.get("step_ms") or {}).get("p99") is not None]
     other = n - count["success"] - count["crash"] - count["timeout"]
     trips = sum(len(r.get("watchdog_trips", [])) for r in rs)
+    # A trip in a flight that did not crash is a false alarm unless a fault was injected.
+    false_trips = [t["cause"] for r in rs if r["outcome"] != "crash" for t in r.get("watchdog_trips", [])]
+    detect = [r["crash_detect_ms"] for r in rs if r["outcome"] == "crash" and r.get("crash_detect_ms") is not None]
+    caught = sum(ms <= 1500.0 for ms in detect)
+    # The largest velocity-tracking error a flight held for a whole tracking window: the margin to
+    # the watchdog's bound (tracking_error_max_m_s) in flights that did not crash.
+    peaks = [r["tracking_error_peak_m_s"] for r in rs if r["outcome"] != "crash" and r.get("tracking_error_peak_m_s") is not None]
     print(f"| {level} | {n} | {100 * count['success'] / n:.0f} | {100 * count['crash'] / n:.0f} | {100 * count['timeout'] / n:.0f} | "
-          f"{other} | {statistics.median(times) if times else float('nan'):.1f} | {statistics.median(p99) if p99 else float('nan'):.1f} | {trips} |")
+          f"{other} | {statistics.median(times) if times else float('nan'):.1f} | {statistics.median(p99) if p99 else float('nan'):.1f} | {trips} | "
+          f"{len(false_trips)} | {caught}/{count['crash']} | {statistics.median(detect) if detect else float('nan'):.0f} | "
+          f"{max(peaks) if peaks else float('nan'):.2f} |")
+    all_trips.update(t["cause"] for r in rs for t in r.get("watchdog_trips", []))
+print("watchdog trips by cause:", dict(all_trips) or "none")
+PY
+  exit 0
+fi
+
+for variant in $VARIANTS; do
+  file=$(variant_file "$MODEL" "$variant")
+  [ -f "$file" ] || { echo "no $variant export of $MODEL ($file): cmnav export ... --variants $variant" >&2; exit 2; }
+  fly "$file" "$OUT/$variant"
+done
+if [ -n "$REPLAY_VARIANT" ]; then
+  first=${VARIANTS%% *}
+  replay_model=$(variant_file "$MODEL" "$REPLAY_VARIANT")
+  : > "$OUT/replay-$REPLAY_VARIANT.jsonl"
+  "$PYTHON" -c 'import json, sys; [print(json.loads(l)["log"]) for l in open(sys.argv[1]) if l.strip().startswith("{") and json.loads(l).get("log")]' \
+    "$OUT/$first/summaries.jsonl" | while read -r log; do
+    "$CMNAV" replay "$log" --model "$replay_model" --json 2>>"$OUT/replay.log" | tail -n 1 >> "$OUT/replay-$REPLAY_VARIANT.jsonl" || true
+  done
+fi
+"$PYTHON" - "$OUT" $VARIANTS <<'PY'
+import collections, json, math, sys
+from pathlib import Path
+
+out, variants = Path(sys.argv[1]), sys.argv[2:]
+
+
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson score 95 % interval of a success rate k/n."""
+    if n == 0:
+        return float("nan"), float("nan")
+    p, d = k / n, 1 + z * z / n
+    centre, half = (p + z * z / (2 * n)) / d, z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
+    return centre - half, centre + half
+
+
+rates = {}
+for v in variants:
+    rows = [json.loads(line) for line in open(out / v / "summaries.jsonl") if line.strip().startswith("{")]
+    by_level = collections.defaultdict(list)
+    for r in rows:
+        by_level[r["level"]].append(r)
+    for level, rs in by_level.items():
+        k = sum(r["outcome"] == "success" for r in rs)
+        p99 = sorted(r["step_ms"]["p99"] for r in rs if r.get("step_ms") and r["step_ms"].get("p99") is not None)
+        rates[level, v] = (k, len(rs), wilson(k, len(rs)), p99[len(p99) // 2] if p99 else float("nan"))
+base = variants[0]
+print(f"| level | variant | flights | success % | 95 % interval | within {base}'s interval | step p99 ms (median) |")
+print("|---|---|---|---|---|---|---|")
+for level in sorted({lv for lv, _ in rates}):
+    lo, hi = rates.get((level, base), (0, 0, (float("nan"), float("nan")), 0))[2]
+    for v in variants:
+        if (level, v) not in rates:
+            continue
+        k, n, (a, b), p99 = rates[level, v]
+        within = "-" if v == base else ("yes" if lo <= k / n <= hi else "NO")
+        print(f"| {level} | {v} | {n} | {100 * k / n:.0f} | {100 * a:.0f}-{100 * b:.0f} | {within} | {p99:.1f} |")
+replays = sorted(out.glob("replay-*.jsonl"))
+for path in replays:
+    rows = [json.loads(line) for line in open(path) if line.strip().startswith("{")]
+    if rows:
+        worst = max(r["max_abs_diff"] for r in rows)
+        mean = sum(r["mean_abs_diff"] * r["steps"] for r in rows) / max(1, sum(r["steps"] for r in rows))
+        print(f"\nreplay of the {base} flights with the {path.stem.removeprefix('replay-')} model: {len(rows)} logs, "
+              f"{sum(r['steps'] for r in rows)} steps, action difference max {worst:.4f}, mean {mean:.4f}")
 PY

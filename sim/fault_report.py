@@ -58,7 +58,7 @@ def fault_records(injections: tuple[Injection, ...], trace: dict, flight: dict, 
         if injection.kind == FaultKind.RUNTIME_KILL:
             trip, t_trip = vehicle_failsafe_trip(mode_log, t_inject)
         else:
-            trip, t_trip = _runtime_trip_after(flight, t_inject)
+            trip, t_trip = runtime_trip_after(flight, t_inject)
         t_stop = _stopped_from(t, speed, t_inject, _landing_commanded(mode_log, t_inject))
         t_hold = _hold_from(mode_log, t_inject)
         record.update(
@@ -96,7 +96,7 @@ def vehicle_failsafe_trip(mode_log: list[tuple[float, str]], t_kill_s: float) ->
     }, t_failsafe
 
 
-def _runtime_trip_after(flight: dict, t_inject: float) -> tuple[dict | None, float | None]:
+def runtime_trip_after(flight: dict, t_inject: float) -> tuple[dict | None, float | None]:
     """The runtime's first response-setting trip at or after ``t_inject``, and its time."""
     t0 = flight.get("t_episode_start_s")
     if t0 is None:

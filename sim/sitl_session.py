@@ -4,7 +4,9 @@ processes over loopback, merged into one summary (JSON), an MCAP log and a top-v
 The SITL vehicle (``python -m sim.sitl``) owns ground truth: world, trajectory, collisions,
 invalid-depth fraction of every served frame.  The runtime (``python -m runtime.sitl_flight``)
 owns what it did: outcome as it saw it, step timing, watchdog trips, MCAP log.  A collision in
-the ground truth overrides the runtime's view (a crash is a crash, whatever the runtime thinks).
+the ground truth overrides the runtime's view (a crash is a crash, whatever the runtime thinks): the summary's ``time_s`` is
+then the crash time in ground truth, and ``crash_detect_ms`` how long the runtime took to trip
+on it (its ``tracking`` or ``vehicle_fault`` trip; null if it never did).
 
 Fault injection (``--inject KIND@SECONDS``, ``runtime.faults``): each fault goes to the process
 where it happens (vehicle or runtime); ``runtime-kill`` is done here, SIGKILL to the runtime's
@@ -41,7 +43,7 @@ from runtime.model import ModelLoadError, PolicyModel, check_outputs_finite
 from runtime.paths import directory_problem
 
 from .episode_args import check_level_seed
-from .fault_report import fault_records, vehicle_failsafe_trip
+from .fault_report import fault_records, runtime_trip_after, vehicle_failsafe_trip
 from .plot import plot_top_view
 
 log = logging.getLogger(__name__)
@@ -119,6 +121,11 @@ class SitlRequest:
     out_dir: Path
     injections: tuple[Injection, ...] = ()
     degrade: str = "none"
+    # Pinning (cmnav bench runtime): the runtime process pins itself (runtime.cpu_affinity) and
+    # runs ONNX Runtime with runtime_threads intra-op threads; the vehicle is started pinned.
+    runtime_cpus: tuple[int, ...] = ()
+    vehicle_cpus: tuple[int, ...] = ()
+    runtime_threads: int = 0
 
     def injections_at(self, site: FaultSite) -> list[str]:
         """``--inject`` arguments for the process at ``site``."""
@@ -235,7 +242,8 @@ def _run_processes(
                  "--camera-port", str(camera_port), "--model", str(request.model_path),
                  "--goal-rel-home", ",".join(f"{v:.4f}" for v in episode["goal_rel_home_enu_m"]),
                  "--takeoff-alt-m", f"{episode['takeoff_alt_m']:.3f}", "--timeout-s", str(request.timeout_s),
-                 "--log-dir", str(run_dir), "--summary", str(summary_path), *request.injections_at(FaultSite.RUNTIME)],
+                 "--log-dir", str(run_dir), "--summary", str(summary_path), *request.injections_at(FaultSite.RUNTIME),
+                 "--cpu-affinity", ",".join(map(str, request.runtime_cpus)), "--intra-op-threads", str(request.runtime_threads)],
                 stdout=runtime_out, stderr=subprocess.STDOUT, env=env,
             )  # fmt: skip
         log.info("runtime started (pid %d); flying", runtime.pid)
@@ -282,6 +290,8 @@ def _start_vehicle(
              "--episode-json", str(episode_path), "--trace", str(trace_path), "--status-json", str(status_path),
              *request.injections_at(FaultSite.VEHICLE)],
             stdout=sim_out, stderr=subprocess.STDOUT, env=env,
+            # In the child before exec: every thread the vehicle starts inherits the set.
+            preexec_fn=(lambda: os.sched_setaffinity(0, request.vehicle_cpus)) if request.vehicle_cpus else None,
         )  # fmt: skip
 
 
@@ -353,10 +363,13 @@ def merge_summary(
     if t_kill_s is not None:
         failsafe, _ = vehicle_failsafe_trip([(t, m) for t, m in trace["mode_log"]], t_kill_s)
         trips += [failsafe] if failsafe is not None else []
+    time_s = flight.get("time_s")
+    if collision:
+        time_s, crash_detect_ms = crash_timing(collision, flight, t_offboard)
     summary = {
         "outcome": outcome,
         "abort_reason": flight.get("abort_reason"),
-        "time_s": flight.get("time_s"),
+        "time_s": time_s,
         "path_m": round(_path_length_m(flown), 3),
         "final_distance_m": round(final_dist_m, 3),
         "invalid_depth_pct": _percent_stats(frame_fracs),
@@ -365,6 +378,7 @@ def merge_summary(
         "step_ms": flight.get("step_ms"),
         "stage_ms": flight.get("stage_ms"),
         "watchdog_trips": trips,
+        "tracking_error_peak_m_s": flight.get("tracking_error_peak_m_s"),
         "t_launch_to_offboard_s": flight.get("t_launch_to_offboard_s"),
         "wall_s": round(wall_s, 2),
         "level": request.level,
@@ -379,10 +393,25 @@ def merge_summary(
     }
     if collision:
         summary["collision"] = collision
+        summary["crash_detect_ms"] = crash_detect_ms
+    if request.runtime_cpus or request.vehicle_cpus:
+        summary["pinning"] = {"runtime_cpus": flight.get("cpu_affinity"), "vehicle_cpus": list(request.vehicle_cpus),
+                              "runtime_intra_op_threads": request.runtime_threads}  # fmt: skip
     if request.injections:
         summary["faults"] = fault_records(request.injections, trace, flight, t_kill_s)
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
+
+
+def crash_timing(collision: dict, flight: dict, t_offboard: float | None) -> tuple[float | None, float | None]:
+    """A crash's ``time_s`` (ground truth: the collision, s after the episode started, as the
+    runtime counts ``time_s``; else after the vehicle's OFFBOARD entry) and ``crash_detect_ms``:
+    collision -> the runtime's first trip at or after it (ms), None if it never tripped."""
+    t_crash = float(collision["t_s"])
+    t0 = flight.get("t_episode_start_s", t_offboard)
+    time_s = None if t0 is None else round(t_crash - t0, 3)
+    trip, t_trip = runtime_trip_after(flight, t_crash)
+    return time_s, None if trip is None else round(1000.0 * (t_trip - t_crash), 1)
 
 
 def run_sitl_cli(args: argparse.Namespace) -> int:
@@ -409,7 +438,9 @@ def run_sitl_cli(args: argparse.Namespace) -> int:
         f"{summary['outcome']}: level {summary['level']} seed {summary['seed']}, "
         f"time {summary['time_s']} s, path {summary['path_m']} m, step p50/p99 "
         f"{(summary['step_ms'] or {}).get('p50')}/{(summary['step_ms'] or {}).get('p99')} ms, "
-        f"watchdog trips {len(summary['watchdog_trips'])}\nlog {summary['log']}\nplot {summary['plot']}"
+        f"watchdog trips {len(summary['watchdog_trips'])}"
+        + (f", crash detected after {summary['crash_detect_ms']} ms" if "crash_detect_ms" in summary else "")
+        + f"\nlog {summary['log']}\nplot {summary['plot']}"
     )
     for fault in summary.get("faults", []):
         print(f"fault {fault['kind']}@{fault['at_s']:g}: trip {fault['cause']} detected in {fault['detect_ms']} ms, "

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+import logging
 import os
 import time
 from dataclasses import dataclass
@@ -11,6 +13,7 @@ import torch
 import torch.distributed as dist
 
 T = TypeVar("T")
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -72,3 +75,15 @@ def run_distributed(device: str, train: Callable[[DistInfo, torch.device], T]) -
 def shutdown(info: DistInfo) -> None:
     if info.enabled and dist.is_initialized():
         dist.destroy_process_group()
+
+
+def log_weights_digest(model: torch.nn.Module, info: DistInfo) -> str:
+    """Log (on every process) and return a SHA-256 of the network's weights: under torchrun every
+    rank must end with the same digest, or the processes trained different networks."""
+    digest = hashlib.sha256()
+    for name, tensor in model.state_dict().items():
+        digest.update(name.encode())
+        digest.update(tensor.detach().float().cpu().contiguous().numpy().tobytes())
+    hexdigest = digest.hexdigest()[:16]
+    log.info("rank %d of %d: final weights sha256 %s", info.rank, info.world_size, hexdigest)
+    return hexdigest

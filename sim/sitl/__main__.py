@@ -34,7 +34,8 @@ def parse_args(argv: list[str] | None = None) -> SitlConfig:
     parser.add_argument("--camera-hz", type=float, default=15.0, help="camera frame rate (default 15)")
     parser.add_argument("--inject", action="append", default=[], metavar="KIND@SECONDS",
                         help="inject a fault SECONDS after this vehicle first enters OFFBOARD (repeatable; kinds: "
-                        "camera-stall, camera-garbage, camera-blackout, telemetry-loss, pilot-takeover, offboard-refused@0)")  # fmt: skip
+                        "camera-stall, camera-garbage, camera-blackout, telemetry-loss, pilot-takeover, offboard-refused@0, "
+                        "vehicle-stuck)")  # fmt: skip
     parser.add_argument("--degrade", default="none", choices=["none", "projector-off"],
                         help="depth degradation of the served frames (projector-off: a D455 without its IR projector)")
     parser.add_argument("--status-json", type=Path, help="keep the mode log here, rewritten at every mode change")

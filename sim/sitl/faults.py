@@ -14,6 +14,11 @@ vehicle's own first OFFBOARD entry; ``offboard-refused`` (only ``@0``) holds fro
   A loss of both directions is, for the vehicle, the ``runtime-kill`` case (setpoints stop).
 - ``pilot-takeover``: the RC pilot flips the mode switch to Position mode (sticks centred).
 - ``offboard-refused``: DO_SET_MODE OFFBOARD is DENIED ("mode not available").
+- ``vehicle-stuck``: the vehicle stops following setpoints without a collision and without a word
+  (a snagged frame, a motor that lost thrust): in OFFBOARD its velocity controller gets zero
+  velocity and no yaw rate whatever the setpoint, so it brakes to a stop and stays there, armed,
+  telemetry flowing; only the runtime's tracking check can tell.  The autopilot's own modes (Hold,
+  Land) still fly, so the test flight can land afterwards.
 
 Threads: the camera hooks run in the render thread, the others in the physics thread; they share
 only the OFFBOARD entry time (a float written once) and ``injected`` (one key per kind).
@@ -122,6 +127,10 @@ class VehicleFaults:
             return False
         self._pilot_switched = True
         return True
+
+    def stuck(self, t_s: float) -> bool:
+        """True while the vehicle ignores its setpoints (``vehicle-stuck``)."""
+        return self.active(FaultKind.VEHICLE_STUCK, t_s)
 
     def offboard_allowed(self, t_s: float) -> bool:
         """The commander asks before entering OFFBOARD; False = refuse."""

@@ -17,6 +17,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from runtime.camera.frame import Frame
@@ -32,6 +33,7 @@ from .camera_feed import CameraFeed
 from .camera_server import FrameServer
 from .commander import Commander
 from .faults import VehicleFaults
+from .flight_tasks import VelocityCommand
 from .geodetic import GeodeticHome
 from .mavlink_endpoint import MavlinkEndpoint
 from .params import ParamTable
@@ -46,6 +48,8 @@ log = logging.getLogger(__name__)
 DEGRADATIONS: dict[str, ProjectorOffModel | None] = {"none": None, "projector-off": ProjectorOffModel()}
 
 MAX_LAG_S = 0.25
+# What the velocity controller gets while the vehicle-stuck fault acts (sim.sitl.faults).
+STUCK_COMMAND = VelocityCommand(vel_enu_m_s=np.zeros(3), yaw_rate_enu_rad_s=0.0)
 
 
 @dataclass(frozen=True)
@@ -181,6 +185,8 @@ class SitlVehicle:
         self._commander.update(t_s, self._kin)
         self._apply_faults(t_s)
         command = self._commander.velocity_command(t_s, self._kin) if self._commander.armed else None
+        if command is not None and self._commander.mode == OFFBOARD and self._faults.stuck(t_s):
+            command = STUCK_COMMAND
         hit = self._airframe.step(command, dt_s)
         self._kin = self._airframe.kinematics(t_ns)
         if hit is not None:

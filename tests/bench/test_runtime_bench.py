@@ -17,7 +17,7 @@ from onnx import TensorProto, helper, numpy_helper
 from bench.runtime import count_flops, cpu_peak, format_runtime_bench
 from export.policy_onnx import export_policy
 from export.variants import VARIANTS, variant_path
-from tests.export.test_policy_onnx import _encoder, _policy
+from tests.export.test_policy_onnx import TEST_BOUND, _encoder, _policy, record_flights
 from training.checkpoint import checkpoint_fingerprint
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -29,7 +29,8 @@ def exported(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("bench")
     encoder = _encoder(tmp / "encoder")
     policy = _policy(tmp / "policy", checkpoint_fingerprint(encoder))
-    export_policy(encoder, policy, tmp / "model.onnx", variants=VARIANTS, random_samples=2)
+    export_policy(encoder, policy, tmp / "model.onnx", recorded=record_flights(tmp, 2), variants=VARIANTS, random_samples=2,
+                  recorded_samples=4, bound=TEST_BOUND)  # fmt: skip
     return tmp / "model.onnx", encoder, policy
 
 
@@ -130,3 +131,38 @@ def test_cpu_peak_states_its_assumptions():
     assert peak["vector_units"] and peak["clock_source"]
     if peak["clock_ghz"]:
         assert peak["peak_gflop_s"] == pytest.approx(2 * peak["flop_per_cycle_per_core"] * peak["clock_ghz"], rel=1e-3)
+
+
+def test_sitl_flights_per_variant_with_the_runtime_pinned(exported):
+    """The quick SITL path flies fp32 and int8 (not fp16) with the runtime on a core of its own and
+    reports the overhead split by stage: structure only, never the times."""
+    import os
+
+    model, _, _ = exported
+    result = _bench_sitl("--model", str(model), "--level", "0", "--seed", "1")
+    sitl = result["sitl"]
+    allowed = sorted(os.sched_getaffinity(0))
+    assert set(sitl["flights"]) == {"fp32", "int8"}
+    if len(allowed) >= 2:
+        assert sitl["pinning"]["runtime_cpus"] == allowed[-1:] and sitl["pinning"]["vehicle_cpus"] == allowed[:-1]
+    for variant, flight in sitl["flights"].items():
+        assert "skipped" not in flight, flight
+        assert flight["model"] == str(model if variant == "fp32" else variant_path(model, variant)) and flight["steps"] > 0
+        if len(allowed) >= 2:  # the runtime pinned itself (runtime.cpu_affinity) and said so in its summary
+            assert flight["pinning"]["runtime_cpus"] == allowed[-1:] and flight["pinning"]["runtime_intra_op_threads"] == 1
+        assert {"frame_wait", "executor_in", "preprocess", "observation", "executor_out", "checks", "send"} <= set(flight["stages"])
+        for stats in (flight["grab_to_command"], flight["overhead"], *flight["stages"].values()):
+            assert STATS <= set(stats)
+    names = [t["name"] for t in result["targets"] if t["name"].startswith("grab->command")]
+    assert len(names) == 4 and all(any(f", {v};" in n for n in names) for v in ("fp32", "int8"))
+    table = format_runtime_bench(result)
+    assert "| SITL int8 stage executor_out |" in table and "SITL flight fp32:" in table
+
+
+def _bench_sitl(*args: str) -> dict:
+    proc = subprocess.run(
+        [sys.executable, "-m", "cmnav", "bench", "runtime", "--quick", "--json", *args],
+        capture_output=True, text=True, timeout=400, cwd=ROOT,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout)

@@ -1,7 +1,8 @@
 """`cmnav export --encoder --policy`: one ONNX graph equal to the torch networks (random and
 recorded inputs), carrying the contract and provenance, accepted by the runtime's loader; a
 contract change or an encoder the policy was not trained on is refused; the fp16/int8 variants
-load and state their parity cost.  Small networks (tiny CMWAE, a 32-16 MLP, GRU 8) on the CPU."""
+load and state their parity cost on held-out recorded flights, and int8 is refused (with the
+numbers, nothing written under its name) when it misses its bound or has too few held-out steps.  Small networks (tiny CMWAE, a 32-16 MLP, GRU 8) on the CPU."""
 
 from __future__ import annotations
 
@@ -27,6 +28,8 @@ from export.policy_onnx import (
     KEY_VARIANT,
     PARITY_TOLERANCE,
     ParityError,
+    VariantBound,
+    VariantRefusedError,
     export_policy,
     load_networks,
     random_inputs,
@@ -46,6 +49,8 @@ GRU_SIZE = 8
 # Parity cost the variants may have on these small random networks (action in [-1, 1]-ish units);
 # they are measured and stated, not promised to be small: this only catches a broken conversion.
 VARIANT_ACTION_BOUND = {"fp16": 1e-2, "int8": 0.2}
+# The export's bound for these networks and the few steps the test flights have.
+TEST_BOUND = VariantBound(max_action_error=VARIANT_ACTION_BOUND["int8"], min_held_out_steps=10)
 
 
 def _encoder(out: Path, modalities=("gray", "depth"), seed: int = 0) -> Path:
@@ -81,23 +86,29 @@ def checkpoints(tmp_path_factory):
     return encoder, _policy(tmp / "policy", checkpoint_fingerprint(encoder))
 
 
-@pytest.fixture(scope="module")
-def recorded_log(tmp_path_factory):
-    """A flight log recorded by the real flight loop (two episodes, noise frames)."""
+def record_flights(tmp: Path, count: int) -> list[Path]:
+    """``count`` flight logs recorded by the real flight loop (two episodes each, textured frames)."""
     from tests.runtime.onnx_models import recurrent_step_model, save
     from tests.runtime.test_replay import _fly_two_episodes
 
-    tmp = tmp_path_factory.mktemp("log")
-    log_path = tmp / "flight.mcap"
-    asyncio.run(_fly_two_episodes(save(recurrent_step_model(), tmp / "recurrent.onnx"), log_path))
-    return log_path
+    model = save(recurrent_step_model(), tmp / "recurrent.onnx")
+    logs = [tmp / f"flight{i}.mcap" for i in range(count)]
+    for log_path in logs:
+        asyncio.run(_fly_two_episodes(model, log_path))
+    return logs
 
 
 @pytest.fixture(scope="module")
-def exported(checkpoints, recorded_log, tmp_path_factory):
+def recorded_logs(tmp_path_factory):
+    """Two flight logs: one calibrates int8, the other is held out."""
+    return record_flights(tmp_path_factory.mktemp("log"), 2)
+
+
+@pytest.fixture(scope="module")
+def exported(checkpoints, recorded_logs, tmp_path_factory):
     encoder, policy = checkpoints
     out = tmp_path_factory.mktemp("export") / "model.onnx"
-    report = export_policy(encoder, policy, out, recorded=recorded_log, variants=("fp16", "int8"), recorded_samples=12)
+    report = export_policy(encoder, policy, out, recorded=recorded_logs, variants=("fp16", "int8"), recorded_samples=12, bound=TEST_BOUND)
     return out, report
 
 
@@ -164,27 +175,67 @@ def test_altered_contract_is_rejected_naming_the_difference(exported, tmp_path):
         PolicyModel(altered)
 
 
-def test_variants_load_with_their_parity_stated(exported):
+def test_variants_load_with_their_parity_stated(exported, recorded_logs):
     path, report = exported
-    assert set(report.variants) == {"fp16", "int8"}
+    assert set(report.variants) == {"fp16", "int8"} and report.refused == {}
     for variant, info in report.variants.items():
         assert info["path"] == str(variant_path(path, variant)) and Path(info["path"]).is_file()
+        assert not Path(info["path"] + ".candidate").exists()
         model = PolicyModel(info["path"])  # the runtime's loader: fp32 inputs and outputs kept
         assert model.hidden_size == GRU_SIZE
         meta = {p.key: p.value for p in onnx.load(info["path"]).metadata_props}
         assert meta[KEY_VARIANT] == variant
         stated = json.loads(meta[KEY_PARITY])
         assert stated["max_abs_error"] == info["max_abs_error_vs_fp32"] and stated["reference"] == "fp32 graph"
-        # Compared on recorded frames int8 was not calibrated on.
-        assert info["inputs"].startswith("recorded (12 steps") and info["inputs"].endswith("last 6")
-        assert stated["fp32_max_abs"] == info["fp32_max_abs"]
+        # Judged on the held-out flight (the second log), which calibration never saw, GRU state carried.
+        assert info["inputs"].startswith("held-out recorded flights, GRU state carried") and info["steps"] > 10
+        assert stated["fp32_max_abs"] == info["fp32_max_abs"] and stated["steps"] == info["steps"]
         action_error = info["max_abs_error_vs_fp32"][c.ONNX_OUTPUT_ACTION]
-        assert 0.0 <= action_error <= VARIANT_ACTION_BOUND[variant]
-    assert report.variants["int8"]["calibration"].endswith("first 6") and report.variants["fp16"]["calibration"] is None
-    int8 = onnx.load(report.variants["int8"]["path"])
-    assert any(n.op_type == "QuantizeLinear" for n in int8.graph.node)
+        assert 0.0 < action_error <= VARIANT_ACTION_BOUND[variant]
+        assert 0.0 <= info["mean_abs_error_vs_fp32"][c.ONNX_OUTPUT_ACTION] <= action_error
+    int8 = report.variants["int8"]
+    assert int8["calibration"].endswith(f"of 1 flights ({recorded_logs[0].parent.name}/{recorded_logs[0].name})") and report.variants["fp16"]["calibration"] is None
+    assert int8["bound"] == {"max_action_error": TEST_BOUND.max_action_error, "min_held_out_steps": TEST_BOUND.min_held_out_steps}
+    assert "bound: action <= 0.2, met" in report.format()
+    quantised = onnx.load(int8["path"])
+    # Only the gray stack's convolutions are quantised: each reads a dequantised weight; the depth
+    # stack's convolutions and every Gemm (encoder FC, MLP, GRU, head) stay fp32.
+    dequantised = {n.output[0] for n in quantised.graph.node if n.op_type == "DequantizeLinear"}
+    convs = [n for n in quantised.graph.node if n.op_type == "Conv"]
+    gray = [n for n in convs if n.name.startswith("/encoder/gray/")]
+    others = [n for n in quantised.graph.node if n.op_type in ("Conv", "Gemm", "MatMul") and n not in gray]
+    assert gray and all(n.input[1] in dequantised for n in gray)
+    assert len(others) > len(gray) and not any(i in dequantised for n in others for i in n.input)
+    assert json.loads(meta_of(int8["path"])[KEY_PARITY])["quantised_nodes"] == [n.name for n in gray]
     fp16 = onnx.load(report.variants["fp16"]["path"])
     assert any(t.data_type == onnx.TensorProto.FLOAT16 for t in fp16.graph.initializer)
+
+
+def meta_of(path: str | Path) -> dict[str, str]:
+    return {p.key: p.value for p in onnx.load(str(path)).metadata_props}
+
+
+def test_int8_over_its_bound_is_refused_with_the_numbers(checkpoints, recorded_logs, tmp_path):
+    out = tmp_path / "m.onnx"
+    variant_path(out, "int8").write_bytes(b"an earlier export's int8")  # must not survive the refusal
+    with pytest.raises(VariantRefusedError) as err:
+        export_policy(*checkpoints, out, recorded=recorded_logs, variants=("fp16", "int8"), recorded_samples=4,
+                      bound=VariantBound(max_action_error=1e-6, min_held_out_steps=10))  # fmt: skip
+    message, report = str(err.value), err.value.report
+    refused = report.refused["int8"]
+    action = refused["max_abs_error"][c.ONNX_OUTPUT_ACTION]
+    assert action > 1e-6 and f"int8 max action error {action:.4f} > 1e-06 over {refused['steps']} held-out" in message
+    assert f"latent error {refused['max_abs_error'][c.ONNX_OUTPUT_LATENT]:.4f}" in message
+    assert not variant_path(out, "int8").exists() and Path(refused["path"]).is_file()  # kept as *.refused only
+    assert out.is_file() and set(report.variants) == {"fp16"}  # fp32 and fp16 are written
+    assert "variant int8: REFUSED, not written" in report.format()
+
+    with pytest.raises(VariantRefusedError, match=r"int8 judged on \d+ held-out recorded steps, fewer than the 100000"):
+        export_policy(*checkpoints, out, recorded=recorded_logs, variants=("int8",), recorded_samples=4,
+                      bound=VariantBound(min_held_out_steps=100_000))  # fmt: skip
+    with pytest.raises(VariantRefusedError, match="int8 needs recorded flights"):
+        export_policy(*checkpoints, out, variants=("int8",), random_samples=2)
+    assert not variant_path(out, "int8").exists()
 
 
 def test_encoder_mismatch_is_refused(checkpoints, tmp_path):
@@ -242,3 +293,20 @@ def test_cli(checkpoints, tmp_path):
 
     proc = subprocess.run([sys.executable, "-m", "cmnav", "export", "-o", str(out)], capture_output=True, text=True, cwd=ROOT)
     assert proc.returncode == 2 and "--encoder, --policy required" in proc.stderr
+
+
+def test_carried_outputs_replay_the_recorded_flight(recorded_logs, tmp_path):
+    """A model carrying its own GRU state through a recorded flight (resets where the flight reset
+    it) reproduces the actions that flew; without the resets it does not: how the variants are judged."""
+    from export.policy_onnx import carried_outputs, cpu_session, flight_inputs
+    from runtime.log_reader import STEP_TOPICS, FlightLogReader
+    from tests.runtime.onnx_models import recurrent_step_model, save
+
+    session = cpu_session(save(recurrent_step_model(), tmp_path / "recurrent.onnx"))
+    flight = flight_inputs(recorded_logs[0], hidden_size=8)
+    flown = np.stack([s.action_raw for s in FlightLogReader(recorded_logs[0]).records(STEP_TOPICS)])
+    assert len(flight) == len(flown) > 10 and flight.resets.sum() == 2  # two episodes
+    np.testing.assert_allclose(carried_outputs(session, flight)[c.ONNX_OUTPUT_ACTION], flown, atol=1e-5)
+    no_reset = flight.subset(slice(None), "no resets")
+    no_reset.resets[1:] = False
+    assert np.abs(carried_outputs(session, no_reset)[c.ONNX_OUTPUT_ACTION] - flown).max() > 1e-3

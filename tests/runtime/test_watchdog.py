@@ -9,6 +9,8 @@ import pytest
 from runtime.command_gate import CommandGate
 from runtime.config import ConfigError, WatchdogConfig
 from runtime.contract import HOVER, VelocityBodyYawspeed
+from runtime.contract.frames import quat_from_euler
+from runtime.status_text import STATUS_TEXTS_KEPT, StatusText, append_status_text
 from runtime.vehicle import VehicleState
 from runtime.watchdog import Response, TripCause, WatchInputs, Watchdog
 
@@ -317,3 +319,95 @@ def test_refused_start_is_recorded_without_commanding():
                                        "detect_ms": 42.0, "response": "hold", "hold_t_s": None}]  # fmt: skip
     assert rig.vehicle.calls == [] and not rig.watchdog.supervising
     assert [e["event"] for e in rig.events] == ["trip"]
+
+
+# ---- the outcome: tracking, attitude, the autopilot's own word -------------------------------
+
+
+def test_tracking_trips_once_the_error_stayed_above_the_bound_for_the_window():
+    async def main():
+        rig = Rig()
+        rig.watchdog.note_command(T0, np.array([2.0, 0.0, 0.0, 0.0]))  # 2 m/s forward; the vehicle stays put
+        # The lagged reference passes the bound at lag ln(2 / (2 - bound)).
+        t_over = T0 + int(CFG.tracking_lag_s * np.log(2.0 / (2.0 - CFG.tracking_error_max_m_s)) * 1e9)
+        t_trip = t_over + int(CFG.tracking_window_s * 1e9)
+        now, trip = T0, None
+        while trip is None:
+            now += 20 * MS
+            trip = await rig.tick(now)
+            assert trip is None or now > t_trip
+        assert now - t_trip <= 20 * MS + 20 * MS  # the first check past the window (over_since is a sample time)
+        assert trip.cause == TripCause.TRACKING and "does not follow" in trip.detail
+        assert trip.detect_ms <= 40.0
+        _assert_hover_then_hold(rig, trip, now)
+        await _finish_grace(rig, now)
+
+    run(main())
+
+
+def test_tracking_error_that_recovers_inside_the_window_does_not_trip():
+    async def main():
+        rig = Rig()
+        rig.watchdog.note_command(T0, np.array([2.0, 0.0, 0.0, 0.0]))
+        for k in range(1, 60):  # 1.2 s standing still: over the bound for ~0.95 s < the window
+            assert await rig.tick(T0 + k * 20 * MS) is None
+        for k in range(60, 400):  # then it flies at 1.6 m/s (a real PX4's level for 2.0 m/s)
+            assert await rig.tick(T0 + k * 20 * MS, vel_enu_m_s=np.array([1.6, 0.0, 0.0])) is None
+
+    run(main())
+
+
+def test_attitude_beyond_the_tilt_bound_trips_after_its_window():
+    async def main():
+        rig = Rig()
+        leaning = quat_from_euler(np.radians(CFG.tilt_max_deg - 5.0), 0.0, 0.3)
+        for k in range(1, 100):
+            assert await rig.tick(T0 + k * 20 * MS, quat_enu_flu=leaning) is None
+        flipped = quat_from_euler(np.radians(170.0), 0.0, 0.3)
+        t_flip = T0 + 100 * 20 * MS
+        now, trip = t_flip, None
+        while trip is None:
+            trip = await rig.tick(now, quat_enu_flu=flipped)
+            assert trip is None or now - t_flip > CFG.tilt_window_s * 1e9
+            now += 20 * MS
+        assert trip.cause == TripCause.ATTITUDE and "170 deg" in trip.detail
+        _assert_hover_then_hold(rig, trip, now)
+
+    run(main())
+
+
+def test_critical_status_text_is_a_vehicle_fault_at_once():
+    async def main():
+        rig = Rig()
+        old = (StatusText(1, T0 - 5 * MS, "CRITICAL", "before the episode"),)  # not this episode's
+        rig.watchdog.start(T0, dataclasses.replace(_state(T0), status_texts=old))
+        texts = (*old, StatusText(2, T0 + 100 * MS, "WARNING", "low battery"))
+        assert await rig.tick(T0 + 120 * MS, status_texts=texts) is None
+        texts = (*texts, StatusText(3, T0 + 200 * MS, "CRITICAL", "collision: obstacle 1"))
+        trip = await rig.tick(T0 + 215 * MS, status_texts=texts)
+        assert trip.cause == TripCause.VEHICLE_FAULT and trip.detail == "autopilot CRITICAL: collision: obstacle 1"
+        assert trip.detect_ms == pytest.approx(15.0)
+        _assert_hover_then_hold(rig, trip, T0 + 215 * MS)
+        await _finish_grace(rig, T0 + 215 * MS, status_texts=texts)
+
+    run(main())
+
+
+def test_disarm_in_flight_is_a_vehicle_fault():
+    async def main():
+        rig = Rig()
+        assert await rig.tick(T0 + 100 * MS) is None
+        trip = await rig.tick(T0 + 140 * MS, armed=False, t_armed_ns=T0 + 130 * MS)
+        assert trip.cause == TripCause.VEHICLE_FAULT and "disarmed" in trip.detail
+        assert trip.detect_ms == pytest.approx(10.0)
+
+    run(main())
+
+
+def test_status_text_severities():
+    assert [StatusText(1, 0, s, "").is_fault for s in ("EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING", "INFO")] == [
+        True, True, True, False, False, False]  # fmt: skip
+    kept = ()
+    for k in range(40):
+        kept = append_status_text(kept, k, "INFO", f"m{k}")
+    assert len(kept) == STATUS_TEXTS_KEPT and kept[-1].seq == 40 and kept[0].text == f"m{40 - STATUS_TEXTS_KEPT}"

@@ -107,6 +107,22 @@ def test_bad_injection_is_refused_before_anything_starts(tmp_path, capsys):
     assert "unknown fault kind 'camera-stal'" in capsys.readouterr().err
 
 
+def test_a_crash_takes_its_time_from_ground_truth_with_the_runtimes_detection_delay(tmp_path):
+    collision = {"t_s": 9.0, "pos_enu_m": [4.9, 3.0, 1.5], "what": "obstacle 0"}
+    trips = [{"cause": "vehicle_fault", "detail": "autopilot CRITICAL: collision: obstacle 0", "t_s": 4.012,
+              "detect_ms": 4.0, "response": "hover_then_hold", "hold_t_s": 5.012}]  # fmt: skip
+    flight = dict(FLIGHT, outcome="aborted", abort_reason="vehicle_fault", time_s=5.1, t_episode_start_s=5.0,
+                  watchdog_trips=trips)  # fmt: skip
+    summary = merge_summary(_request(tmp_path), EPISODE, flight, _trace(collision), tmp_path, 30.0)
+    assert summary["outcome"] == "crash" and summary["abort_reason"] == "vehicle_fault"
+    assert summary["time_s"] == pytest.approx(4.0)  # collision at 9.0, episode from 5.0; not the runtime's 5.1
+    assert summary["crash_detect_ms"] == pytest.approx(12.0)
+    # A runtime that never noticed: the time is still the crash's, the detection delay null.
+    unnoticed = dict(FLIGHT, outcome="timeout", time_s=15.0, t_episode_start_s=5.0)
+    summary = merge_summary(_request(tmp_path), EPISODE, unnoticed, _trace(collision), tmp_path, 30.0)
+    assert summary["time_s"] == pytest.approx(4.0) and summary["crash_detect_ms"] is None
+
+
 def test_a_nan_model_is_refused_before_any_process_starts(tmp_path, capsys):
     from tests.runtime.onnx_models import save, step_model
 

@@ -21,6 +21,7 @@ from sim.degradation import EVALUATION_COVERAGES, EVALUATION_PATCH_SIDES_PX, cor
 from sim.plot import opencv_for_drawing
 
 from ..data.tartanair import GrayDepthDataset
+from ..fastpath import choose_fast_path
 from ..vendored import import_vendored
 from .train import load_cmwae
 
@@ -40,12 +41,15 @@ class CmwaeEvalConfig:
     seed: int = 0
     coverages: tuple[float, ...] = EVALUATION_COVERAGES
     patch_sides_px: tuple[int, int] = EVALUATION_PATCH_SIDES_PX  # Table I's; e.g. (100, 100): S2's own squares
+    precision: str = "auto"  # training.fastpath: the encoder under bf16 autocast where the CPU has it (decoder fp32)
 
 
 @torch.no_grad()
 def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
     schemes = {c: evaluation_scheme(c, config.patch_sides_px) for c in config.coverages}  # bad sides fail here, first
     model, card = load_cmwae(config.checkpoint, config.device)
+    path = choose_fast_path(config.precision, config.device)
+    model = path.prepare_trained(model)
     dataset = GrayDepthDataset(config.data_dir, config.split)
     loader = DataLoader(dataset, batch_size=config.batch_size, num_workers=0)
     per_coverage: dict[float, dict[str, list[float]]] = {}
@@ -61,7 +65,8 @@ def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
                 gray, depth = gray[: config.max_images - seen], depth[: config.max_images - seen]
             masks = patch_masks(torch.full((depth.shape[0],), coverage), schemes[coverage], generator)
             corrupted = corrupt_depth(depth, masks)
-            _, recon = model(gray.to(config.device), corrupted.to(config.device))
+            with path.autocast(config.device):
+                _, recon = model(path.image(gray.to(config.device)), path.image(corrupted.to(config.device)))
             recon = recon.float().cpu()
             mse += ((recon - depth) ** 2).mean(dim=(1, 2, 3)).tolist()
             sim += ssim(recon, depth, data_range=1.0, size_average=False).tolist()
@@ -95,6 +100,7 @@ def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
         "step": card["step"],
         "split": config.split,
         "patch_sides_px": list(config.patch_sides_px),
+        "fast_path": path.name,
         "rows": rows,
         "table": markdown_table(rows),
         "mse_ratio_50_over_0": _ratio(rows),

@@ -31,9 +31,14 @@ def mmd_imq(z: Tensor, prior_z: Tensor, sigma2: float = 1.0, scales: tuple[float
     return stat
 
 
-def cmwae_loss(recon: Tensor, target: Tensor, z: Tensor, mmd_weight: float, generator: torch.Generator | None = None) -> dict[str, Tensor]:
-    """-> {"loss", "recon_mse", "mmd"}; the prior sample is drawn from N(0, I)."""
-    recon_mse = torch.mean((recon - target) ** 2)
+def cmwae_loss(recon: Tensor, target: Tensor, z: Tensor, mmd_weight: float, generator: torch.Generator | None = None,
+               image_weights: Tensor | None = None) -> dict[str, Tensor]:  # fmt: skip
+    """-> {"loss", "recon_mse", "mmd"}; the prior sample is drawn from N(0, I).  ``image_weights``
+    [B] weigh each image's reconstruction error in the loss (a weighted mean); ``recon_mse``
+    stays the plain mean."""
+    per_image = ((recon - target) ** 2).flatten(1).mean(dim=1)
+    recon_mse = per_image.mean()
+    weighted = recon_mse if image_weights is None else (per_image * image_weights).sum() / image_weights.sum()
     prior = torch.randn(z.shape, generator=generator, device=z.device, dtype=z.dtype)
     mmd = mmd_imq(z, prior)
-    return {"loss": recon_mse + mmd_weight * mmd, "recon_mse": recon_mse, "mmd": mmd}
+    return {"loss": weighted + mmd_weight * mmd, "recon_mse": recon_mse, "mmd": mmd}

@@ -19,7 +19,8 @@ from sim.degradation import SCHEMES, corrupt_depth, corrupt_with_scheme, evaluat
 
 from ..checkpoint import load_train_state, load_weights, read_card, save_train_state, save_weights
 from ..data.tartanair import GrayDepthDataset
-from ..distributed import DistInfo, all_reduce_mean, run_distributed, wall_budget_spent
+from ..distributed import DistInfo, all_reduce_mean, log_weights_digest, run_distributed, wall_budget_spent
+from ..fastpath import PRECISIONS, FastPath, choose_fast_path
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .loss import cmwae_loss
@@ -43,6 +44,11 @@ class CmwaeTrainConfig:
     lr: float = 1e-4
     lr_final: float | None = None  # cosine decay from lr at step 0 to lr_final at the last step; None: constant
     mmd_weight: float = 10.0
+    # Weight of a corrupted image's reconstruction error against a pristine one's (1: the paper's
+    # plain mean).  S2 corrupts half the images; above 1 the gradient leans on depth-from-gray.
+    corrupted_loss_weight: float = 1.0
+    precision: str = "auto"  # training.fastpath: bf16 autocast (fp32 master weights and loss) where the CPU has it
+    init_from: str | None = None  # start from this checkpoint's weights (not its optimizer or step)
     seed: int = 0
     device: str = "cpu"
     workers: int = 2
@@ -62,6 +68,10 @@ class CmwaeTrainConfig:
                 raise ValueError(f"{key}={getattr(self, key)} must be >= 1")
         if (self.steps or 1) < 1 or (self.epochs or 1) < 1:
             raise ValueError("steps and epochs must be >= 1")
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"precision={self.precision!r} must be one of {PRECISIONS}")
+        if not 0.0 < self.corrupted_loss_weight <= 100.0:
+            raise ValueError(f"corrupted_loss_weight={self.corrupted_loss_weight} must lie in (0, 100]")
         if self.lr <= 0 or (self.lr_final is not None and not 0 <= self.lr_final <= self.lr):
             raise ValueError(f"lr={self.lr}, lr_final={self.lr_final}: need lr > 0 and 0 <= lr_final <= lr")
 
@@ -75,15 +85,17 @@ def learning_rate(config: CmwaeTrainConfig, step: int, total_steps: int) -> floa
     return config.lr_final + 0.5 * (config.lr - config.lr_final) * (1.0 + math.cos(math.pi * progress))
 
 
-def _corrupt(depth: torch.Tensor, scheme: str, generator: torch.Generator) -> torch.Tensor:
+def _corrupt(depth: torch.Tensor, scheme: str, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """(corrupted depth, [B] bool: which images lost pixels)."""
     if scheme == "none":
-        return depth
-    corrupted, _ = corrupt_with_scheme(depth, SCHEMES[scheme], generator)
-    return corrupted
+        return depth, torch.zeros(depth.shape[0], dtype=torch.bool)
+    corrupted, masks = corrupt_with_scheme(depth, SCHEMES[scheme], generator)
+    return corrupted, masks.flatten(1).any(dim=1)
 
 
 @torch.no_grad()
-def validation_mse(model: Cmwae, loader: DataLoader, device: torch.device, coverage: float, max_images: int, seed: int) -> float:
+def validation_mse(model: Cmwae, loader: DataLoader, device: torch.device, coverage: float, max_images: int, seed: int,
+                   path: FastPath) -> float:  # fmt: skip
     """Mean reconstruction MSE on up to max_images with Table I's evaluation corruption."""
     model.eval()
     generator = torch.Generator().manual_seed(seed)
@@ -93,8 +105,9 @@ def validation_mse(model: Cmwae, loader: DataLoader, device: torch.device, cover
             break
         masks = patch_masks(torch.full((depth.shape[0],), coverage), evaluation_scheme(coverage), generator)
         corrupted = corrupt_depth(depth, masks)
-        _, recon = model(gray.to(device), corrupted.to(device))
-        total += float(((recon.cpu() - depth) ** 2).mean(dim=(1, 2, 3)).sum())
+        with path.autocast(device):
+            _, recon = model(path.image(gray.to(device)), path.image(corrupted.to(device)))
+        total += float(((recon.float().cpu() - depth) ** 2).mean(dim=(1, 2, 3)).sum())
         count += depth.shape[0]
     model.train()
     return total / max(count, 1)
@@ -120,7 +133,8 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
     total_steps = config.steps if config.steps is not None else config.epochs * len(loader)
 
     model_config = make_config(config.size, config.modalities)
-    model = Cmwae(model_config).to(device)
+    path = choose_fast_path(config.precision, device)
+    model = path.prepare_trained(Cmwae(model_config).to(device))
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
     corruption_generator = torch.Generator().manual_seed(config.seed * 1000 + info.rank)
     loss_generator = torch.Generator(device=device).manual_seed(config.seed * 1000 + info.rank + 1)
@@ -132,16 +146,27 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
         step, epoch = state["step"], state["epoch"]
         corruption_generator.set_state(state["corruption_rng"])
         log.info("resumed %s at step %d", out, step)
-    elif config.resume:
-        log.warning("--resume: no training state in %s, starting from scratch", out)
+    elif config.init_from is not None:
+        init_card = read_card(config.init_from, CHECKPOINT_KIND)
+        if _config_from_card(init_card) != model_config:
+            raise ValueError(f"--init-from {config.init_from}: its network ({init_card['config']}) is not the one "
+                             f"--size {config.size} --modalities {','.join(config.modalities)} builds")  # fmt: skip
+        load_weights(config.init_from, model)
+        log.info("initialised from %s (step %s)", config.init_from, init_card.get("step"))
+    if config.resume and state is None:
+        log.warning("--resume: no training state in %s, starting %s", out,
+                    "from scratch" if config.init_from is None else f"from {config.init_from}")  # fmt: skip
     ddp_model = DistributedDataParallel(model) if info.enabled else model
     writer = ScalarWriter(out / "tensorboard") if info.is_main else None
     desc = f"train cmwae ({config.scheme}, {'+'.join(config.modalities)})"
     progress = Progress(total_steps, desc, unit="steps", initial=step) if info.is_main else None
-    meta = {"train": asdict(config), "world_size": info.world_size, "dataset": str(config.data_dir)}
+    meta = {"train": asdict(config), "world_size": info.world_size, "dataset": str(config.data_dir),
+            "fast_path": {"name": path.name, "reason": path.reason}}  # fmt: skip
 
     def checkpoint() -> None:
-        val = {f"val/mse_{int(c * 100)}pct": validation_mse(model, val_loader, device, c, config.val_images, config.seed) for c in (0.0, 0.5)}
+        val = {f"val/mse_{int(c * 100)}pct": validation_mse(model, val_loader, device, c, config.val_images, config.seed, path)
+               for c in (0.0, 0.5)}  # fmt: skip
+        val["val/mse_ratio_50_over_0"] = val["val/mse_50pct"] / max(val["val/mse_0pct"], 1e-12)
         if writer is not None:
             writer.add_scalars(step, val)
             save_weights(out, model, CHECKPOINT_KIND, asdict(model_config), step, {**meta, **val})
@@ -157,10 +182,12 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
         for gray, depth in loader:
             if step >= total_steps:
                 break
-            corrupted = _corrupt(depth, config.scheme, corruption_generator)
-            gray, depth, corrupted = gray.to(device), depth.to(device), corrupted.to(device)
-            z, recon = ddp_model(gray, corrupted)
-            losses = cmwae_loss(recon, depth, z, config.mmd_weight, loss_generator)
+            corrupted, was_corrupted = _corrupt(depth, config.scheme, corruption_generator)
+            gray, depth, corrupted = path.image(gray.to(device)), depth.to(device), path.image(corrupted.to(device))
+            with path.autocast(device):
+                z, recon = ddp_model(gray, corrupted)
+            weights = torch.where(was_corrupted, config.corrupted_loss_weight, 1.0).to(device)
+            losses = cmwae_loss(recon.float(), depth, z.float(), config.mmd_weight, loss_generator, weights)
             lr = learning_rate(config, step, total_steps)
             for group in optimizer.param_groups:
                 group["lr"] = lr  # also overrides the rate a resumed optimizer state carries
@@ -188,6 +215,7 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
                 break
         epoch += 1
     checkpoint()
+    log_weights_digest(model, info)
     if progress is not None:
         progress.close()
     if writer is not None:
@@ -195,10 +223,13 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
     return out
 
 
+def _config_from_card(card: dict) -> CmwaeConfig:
+    return CmwaeConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in card["config"].items()})
+
+
 def load_cmwae(ckpt_dir: str | Path, device: str | torch.device = "cpu") -> tuple[Cmwae, dict]:
     """The trained network (eval mode) and its card."""
     card = read_card(ckpt_dir, CHECKPOINT_KIND)
-    config = card["config"]
-    model = Cmwae(CmwaeConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in config.items()}))
+    model = Cmwae(_config_from_card(card))
     load_weights(ckpt_dir, model)
     return model.to(device).eval(), card

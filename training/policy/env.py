@@ -42,6 +42,8 @@ from sim.render import render
 from sim.rotations import quat_from_euler, quat_multiply, rotate_about_z
 from sim.world import WorldBatch, WorldConfig, env_seed, make_worlds
 
+from ..fastpath import frozen_encoder
+
 from .contract_torch import action_to_velocity_flu_batch, observation_state_batch
 
 RUNNING, SUCCESS, CRASH, TIMEOUT = 0, 1, 2, 3
@@ -214,6 +216,22 @@ class Curriculum:
     def load_state_dict(self, state: dict) -> None:
         self.level, self.changes = int(state["level"]), int(state["changes"])
         self._window = deque(bool(x) for x in state["window"])
+
+
+def parity_frames(encoder: nn.Module, device: torch.device | str, count: int = 64, level: int = 5,
+                  seed: int = 0) -> tuple[Tensor, Tensor]:  # fmt: skip
+    """(gray, depth) [count, 1, 224, 224] rendered at the start of ``count`` rooms at ``level``,
+    half of them with the training corruption: the frames a fast encoder path is checked on."""
+    config = NavEnvConfig(num_envs=count, curriculum=CurriculumConfig(start_level=level, min_level=level, max_level=level))
+    env = NavEnv(config, encoder, device, seed=seed, fixed_level=level)
+    env._reset_envs(torch.arange(count))
+    return env.render_inputs()
+
+
+def env_encoder(encoder: nn.Module, precision: str, device: torch.device | str, seed: int = 0) -> nn.Module:
+    """The frozen encoder the envs run, on the CPU's fast path for ``precision``
+    (training.fastpath), bf16 checked for parity on rendered frames first."""
+    return frozen_encoder(encoder, precision, device, lambda: parity_frames(encoder, device, seed=seed))
 
 
 class NavEnv:

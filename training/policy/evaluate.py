@@ -10,18 +10,23 @@ on every frame: depth lost on low-texture, dark, oblique or far surfaces).
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import torch
+from torch import nn
 
+from runtime.contract.constants import STATE_DIM
 from sim.plot import plot_top_view
 
 from ..cmwae.train import load_cmwae
+from ..fastpath import FrozenEncoder, check_action_parity
 from ..progress import Progress
-from .env import CRASH, OUTCOMES, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig
+from .env import CRASH, OUTCOMES, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder, parity_frames
 from .network import check_trained_on, load_policy
 
+log = logging.getLogger(__name__)
 CONDITIONS = {"clean": "none", "corrupted": "episode", "projector-off": "projector-off"}
 
 
@@ -37,6 +42,7 @@ class PolicyEvalConfig:
     seed: int = 0
     out_dir: str | None = None  # plots and table2.json (default POLICY/eval)
     plots_per_cell: int = 2
+    precision: str = "auto"  # the frozen encoder's fast path (training.fastpath)
 
     def validate(self) -> None:
         unknown = [c for c in self.conditions if c not in CONDITIONS]
@@ -77,6 +83,22 @@ def fly_episodes(policy, encoder, level: int, condition: str, episodes: int, bat
         done_count += n
 
 
+@torch.no_grad()
+def check_policy_parity(policy, reference: nn.Module, fast: nn.Module, device, seed: int) -> float | None:
+    """On a bf16 encoder: the largest change of the policy's first action its latent causes on
+    rendered frames (heading for a goal 6 m ahead, at rest), refused beyond the bound; None in fp32."""
+    if not (isinstance(fast, FrozenEncoder) and fast.path.bf16):
+        return None
+    gray, depth = parity_frames(reference, device, seed=seed + 1)
+    state = torch.zeros(gray.shape[0], STATE_DIM, device=device)
+    state[:, 0], state[:, 3] = 1.0, 0.5
+    hidden = policy.initial_hidden(gray.shape[0], device)
+    actions = [policy.step(torch.cat([state, enc(gray, depth).float()], dim=1), hidden)[0] for enc in (reference, fast)]
+    error = check_action_parity(*actions)
+    log.info("bf16 encoder: the policy's action moves by at most %.4f on %d rendered frames", error, gray.shape[0])
+    return error
+
+
 def evaluate_policy(config: PolicyEvalConfig) -> dict:
     """Run every (condition, level) cell; write table2.json, table2.md and trajectory plots."""
     config.validate()
@@ -84,6 +106,8 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
     policy, card = load_policy(config.policy_dir, device)
     fingerprint = check_trained_on(card, config.policy_dir, config.encoder_dir)
     cmwae, _ = load_cmwae(config.encoder_dir, device)
+    encoder = env_encoder(cmwae.encoder, config.precision, device, seed=config.seed)
+    action_parity = check_policy_parity(policy, cmwae.encoder, encoder, device, config.seed)
     out = Path(config.out_dir or Path(config.policy_dir) / "eval")
     out.mkdir(parents=True, exist_ok=True)
     cells = []
@@ -92,7 +116,7 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
         for level in config.levels:
             counts = {SUCCESS: 0, TIMEOUT: 0, CRASH: 0}
             for k, (code, path, world) in enumerate(
-                fly_episodes(policy, cmwae.encoder, level, condition, config.episodes, config.batch_envs, device, config.seed)
+                fly_episodes(policy, encoder, level, condition, config.episodes, config.batch_envs, device, config.seed)
             ):
                 counts[code] += 1
                 if k < config.plots_per_cell:
@@ -109,6 +133,7 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
     progress.close()
     result = {
         "policy": str(config.policy_dir), "encoder": str(config.encoder_dir), "encoder_fingerprint": fingerprint,
+        "fast_path": {"encoder": getattr(getattr(encoder, "path", None), "name", "fp32"), "bf16_action_error": action_parity},
         "policy_env_steps": card.get("step"), "config": asdict(replace(config, out_dir=str(out))), "cells": cells,
     }  # fmt: skip
     (out / "table2.json").write_text(json.dumps(result, indent=2))

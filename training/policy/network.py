@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
+import torch.distributed as dist
 from torch import Tensor, nn
 
 from runtime.contract.constants import ACTION_DIM, OBSERVATION_DIM
@@ -69,11 +70,18 @@ class RunningNorm(nn.Module):
     @torch.no_grad()
     def update(self, x: Tensor) -> None:
         x = x.reshape(-1, x.shape[-1]).float()
-        if x.shape[0] == 0 or float(self.count) >= self.max_count:
+        if float(self.count) >= self.max_count:
             return
-        batch_mean = x.mean(dim=0)
-        batch_var = x.var(dim=0, unbiased=False)
-        n = float(x.shape[0])
+        # Moments summed over every process under torchrun, so that all ranks keep the same
+        # statistics (and so the same network): (n, sum x, sum x^2).
+        sums = torch.cat([torch.tensor([float(x.shape[0])], device=x.device), x.sum(dim=0), x.square().sum(dim=0)])
+        if dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:
+            dist.all_reduce(sums)
+        n = float(sums[0])
+        if n == 0:
+            return
+        batch_mean = sums[1 : 1 + x.shape[1]] / n
+        batch_var = (sums[1 + x.shape[1] :] / n - batch_mean.square()).clamp_min(0.0)
         count = float(self.count)
         total = count + n
         delta = batch_mean - self.mean

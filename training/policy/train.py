@@ -16,10 +16,10 @@ from runtime.contract.constants import OBS_LATENT
 
 from ..checkpoint import checkpoint_fingerprint, load_train_state, save_train_state, save_weights
 from ..cmwae.train import load_cmwae
-from ..distributed import DistInfo, all_reduce_mean, run_distributed, wall_budget_spent
+from ..distributed import DistInfo, all_reduce_mean, log_weights_digest, run_distributed, wall_budget_spent
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
-from .env import CRASH, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig
+from .env import CRASH, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder
 from .network import CHECKPOINT_KIND, ActorCritic, PolicyConfig, load_policy
 from .ppo import PpoConfig, ReturnNormalizer, Rollout, ppo_update
 
@@ -42,6 +42,7 @@ class PolicyTrainConfig:
     resume: bool = False
     init_from: str | None = None  # start from this policy checkpoint (fine-tuning, e.g. after retraining the encoder)
     max_wall_s: float | None = None  # stop (with a checkpoint) after this long
+    precision: str = "auto"  # the frozen encoder's fast path (training.fastpath)
     env_overrides: dict = field(default_factory=dict)  # other NavEnvConfig fields
 
     def env_config(self) -> NavEnvConfig:
@@ -81,7 +82,8 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
     torch.manual_seed(config.seed + info.rank)
     cmwae, encoder_card = load_cmwae(config.encoder_dir, device)
     encoder_fingerprint = checkpoint_fingerprint(config.encoder_dir)
-    env = NavEnv(config.env_config(), cmwae.encoder, device, seed=config.seed * 1000 + info.rank)
+    encoder = env_encoder(cmwae.encoder, config.precision, device, seed=config.seed)
+    env = NavEnv(config.env_config(), encoder, device, seed=config.seed * 1000 + info.rank)
     model = ActorCritic(config.policy).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.ppo.lr)
     normalizer = ReturnNormalizer(config.num_envs, config.ppo.gamma, device)
@@ -176,6 +178,7 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
             log.info("wall-clock budget of %.0f s reached after %d env steps", config.max_wall_s, env_steps)
             break
     checkpoint()
+    log_weights_digest(model, info)
     if progress is not None:
         progress.close()
     if writer is not None:

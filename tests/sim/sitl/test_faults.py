@@ -115,3 +115,11 @@ def test_silent_endpoint_sends_nothing_but_still_receives():
     finally:
         endpoint.close()
         gcs.close()
+
+
+def test_stuck_vehicle_ignores_setpoints_from_its_time():
+    faults = _faults("vehicle-stuck@2")
+    assert not faults.stuck(T_OFFBOARD + 1.9)
+    assert faults.stuck(T_OFFBOARD + 2.0) and faults.stuck(T_OFFBOARD + 5.0)
+    assert faults.injected == {FaultKind.VEHICLE_STUCK: T_OFFBOARD + 2.0}
+    assert not _faults("camera-stall@0").stuck(T_OFFBOARD + 5.0)

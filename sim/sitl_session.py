@@ -70,7 +70,9 @@ class SitlStopped(Exception):
 class _StopSignals:
     """SIGTERM / SIGINT while ``cmnav sitl`` runs: the first one interrupts the wait (raises
     :class:`SitlStopped`) so that the children are stopped by PID — the runtime with SIGTERM, so it
-    commands hover then Hold and writes its summary, then the vehicle.  Further signals, and any
+    commands hover then Hold and writes its summary, then the vehicle.  The children run in their
+    own sessions, so a Ctrl-C in the terminal reaches only this process, which stops them in that
+    order (the vehicle must still be there to take the runtime's Hold).  Further signals, and any
     that come once the children are being stopped, are logged and ignored: they must not cut the
     stop short (each child is SIGKILLed after STOP_TIMEOUT_S if it ignores SIGTERM)."""
 
@@ -244,7 +246,7 @@ def _run_processes(
                  "--takeoff-alt-m", f"{episode['takeoff_alt_m']:.3f}", "--timeout-s", str(request.timeout_s),
                  "--log-dir", str(run_dir), "--summary", str(summary_path), *request.injections_at(FaultSite.RUNTIME),
                  "--cpu-affinity", ",".join(map(str, request.runtime_cpus)), "--intra-op-threads", str(request.runtime_threads)],
-                stdout=runtime_out, stderr=subprocess.STDOUT, env=env,
+                stdout=runtime_out, stderr=subprocess.STDOUT, env=env, start_new_session=True,
             )  # fmt: skip
         log.info("runtime started (pid %d); flying", runtime.pid)
         t_kill_s = _wait_runtime(runtime, request, status_path)
@@ -289,7 +291,7 @@ def _start_vehicle(
              "--level", str(request.level), "--seed", str(request.seed), "--degrade", request.degrade,
              "--episode-json", str(episode_path), "--trace", str(trace_path), "--status-json", str(status_path),
              *request.injections_at(FaultSite.VEHICLE)],
-            stdout=sim_out, stderr=subprocess.STDOUT, env=env,
+            stdout=sim_out, stderr=subprocess.STDOUT, env=env, start_new_session=True,
             # In the child before exec: every thread the vehicle starts inherits the set.
             preexec_fn=(lambda: os.sched_setaffinity(0, request.vehicle_cpus)) if request.vehicle_cpus else None,
         )  # fmt: skip

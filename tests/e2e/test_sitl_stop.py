@@ -1,10 +1,11 @@
-"""SIGTERM to `cmnav sitl` mid-flight (what `timeout` sends): it forwards the stop to its children
+"""SIGTERM (what `timeout` sends) or a terminal's Ctrl-C to `cmnav sitl` mid-flight: it forwards the stop to its children
 and stops them by PID — the runtime first, which commands hover then Hold and records the stop —
 leaves no process behind, and still prints its summary; a second signal changes nothing."""
 
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -43,14 +44,17 @@ def _offboard_entered(out: Path) -> bool:
     return False
 
 
-def test_sigterm_to_cmnav_sitl_stops_its_children_and_records_the_stop(tmp_path):
+@pytest.mark.parametrize("how", ["sigterm", "ctrl-c"])
+def test_a_stop_signal_to_cmnav_sitl_stops_its_children_and_records_the_stop(tmp_path, how):
+    """``sigterm``: to the process, as `timeout` and `kill` send it.  ``ctrl-c``: SIGINT to the
+    whole foreground process group, as a terminal sends it."""
     model = tmp_path / "goal-seeker.onnx"
     export_goal_seeker(str(model))
     out = tmp_path / "runs"
     proc = subprocess.Popen(
         [sys.executable, "-m", "cmnav", "sitl", "--model", str(model), "--out", str(out), "--json", "--level", "0",
          "--seed", "1", "--timeout", "30"],
-        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,  # its own group
     )  # fmt: skip
     children: list[int] = []
     try:
@@ -62,7 +66,10 @@ def test_sigterm_to_cmnav_sitl_stops_its_children_and_records_the_stop(tmp_path)
         time.sleep(2.5)  # the runtime sees OFFBOARD up to one 1 Hz HEARTBEAT later, then flies the policy
         children = _children(proc.pid)
         assert len(children) == 2, children  # the SITL vehicle and the runtime
-        proc.send_signal(signal.SIGTERM)
+        if how == "sigterm":
+            proc.send_signal(signal.SIGTERM)
+        else:
+            os.killpg(proc.pid, signal.SIGINT)  # cmnav sitl and whatever else is in its group
         time.sleep(0.2)
         proc.send_signal(signal.SIGINT)  # a second signal while stopping: ignored
         stdout, stderr = proc.communicate(timeout=60)
@@ -78,7 +85,7 @@ def test_sigterm_to_cmnav_sitl_stops_its_children_and_records_the_stop(tmp_path)
     alive = [pid for pid in children if Path(f"/proc/{pid}").exists()]
     assert alive == [], f"processes left behind: {alive}"
     summary = json.loads(stdout.strip().splitlines()[-1])
-    assert summary["outcome"] == "aborted" and summary["abort_reason"] == "stopped by SIGTERM"
+    assert summary["outcome"] == "aborted" and summary["abort_reason"] == f"stopped by {'SIGTERM' if how == 'sigterm' else 'SIGINT'}"
     stop = summary["stop"]
     assert (stop["cause"], stop["phase"], stop["action"]) == ("SIGTERM", "episode", "hover_then_hold"), stop
     assert summary["time_s"] > 0.0 and summary["frames"] > 0

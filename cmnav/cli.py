@@ -17,6 +17,11 @@ def _cmd_sitl(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
+    from runtime.paths import output_file_problem
+
+    if (problem := output_file_problem(args.output)) is not None:
+        print(f"cmnav export goal-seeker: -o {args.output}: {problem}", file=sys.stderr)
+        return 2
     from export.goal_seeker import export_goal_seeker
 
     export_goal_seeker(args.output)
@@ -30,6 +35,11 @@ def _cmd_export_policy(args: argparse.Namespace) -> int:
     missing = [flag for flag, value in (("--encoder", args.encoder), ("--policy", args.policy), ("-o", args.model_out)) if not value]
     if missing:
         print(f"cmnav export: {', '.join(missing)} required (or `cmnav export goal-seeker -o PATH`)", file=sys.stderr)
+        return 2
+    from runtime.paths import output_file_problem
+
+    if (problem := output_file_problem(args.model_out)) is not None:
+        print(f"cmnav export: -o {args.model_out}: {problem}", file=sys.stderr)
         return 2
     from export.policy_onnx import ExportError, VariantRefusedError, export_policy
     from runtime.contract import ContractMismatchError
@@ -313,7 +323,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Validate the TOML config (nothing talks to the vehicle before it and the model pass), "
         "connect, wait for the pilot to arm, take off and switch to offboard (or, with "
         "mission.allow_arm_takeoff = true, do that itself), fly to the goal, Hold, repeat.  "
-        "Exit 0 done or stopped, 1 a failure a restart may cure, 2 a bad config or model.  "
+        "SIGTERM/SIGINT in any phase: the runtime commands the safe state (in offboard hover, then Hold) and exits.  "
+        "Exit 0 done or stopped, 1 a failure a restart may cure, 2 a bad config or model (or an unwritable log with "
+        "recorder.required).  "
         "Every key: examples/cmnav.toml.",
     )
     fly.add_argument("--config", required=True, help="TOML config, e.g. /etc/cmnav/cmnav.toml")

@@ -11,8 +11,10 @@ documents every key.
 
 from __future__ import annotations
 
+import ipaddress
 import math
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,6 +34,31 @@ def _require(ok: bool, key: str, value: object, allowed: str) -> None:
 
 def _positive(key: str, value: float) -> None:
     _require(isinstance(value, (int, float)) and math.isfinite(value) and value > 0, key, value, "a finite number > 0")
+
+
+def _within(key: str, value: float, low: float, high: float, unit: str, why: str) -> None:
+    """``value`` in [low, high]: the upper bounds keep each safety check able to fire (a watchdog
+    period of an hour is a watchdog switched off) and the process sane."""
+    _require(isinstance(value, (int, float)) and low <= value <= high, key, value, f"in [{low:g}, {high:g}] {unit} ({why})")
+
+
+# Upper bounds (and a few lower ones) of the numeric keys, with why; see _within.
+_CONTROL_MS = 1000.0 * CONTROL_PERIOD_S
+_WATCHDOG_RANGES = {
+    "period_s": (0.001, CONTROL_PERIOD_S, "s", "checked at least once per control period"),
+    "frame_stale_ms": (_CONTROL_MS, 1000.0, "ms", "from one control period to a second of frames"),
+    "step_trip_ms": (_CONTROL_MS, 1000.0, "ms", "from one control period to a second"),
+    "telemetry_stale_ms": (20.0, 1000.0, "ms", "PX4 streams position and attitude at 30-50 Hz"),
+    "depth_invalid_max_s": (CONTROL_PERIOD_S, 10.0, "s", "blind flight is cut short"),
+    "hold_grace_s": (0.0, 5.0, "s", "the hover before Hold ends"),
+    "geofence_radius_m": (0.0, 200.0, "m", "a fence the vehicle can reach"),
+    "altitude_max_m": (0.0, 120.0, "m", "a band below the usual 120 m ceiling"),
+    "tracking_window_s": (CONTROL_PERIOD_S, 5.0, "s", "a stuck vehicle is caught within seconds"),
+    "tilt_window_s": (0.0, 2.0, "s", "a flip is caught before the vehicle falls"),
+}
+_VEHICLE_TIMEOUT_MAX_S = {"connect_timeout_s": 600.0, "command_timeout_s": 10.0, "health_timeout_s": 600.0,
+                          "takeoff_timeout_s": 300.0, "land_timeout_s": 600.0}  # fmt: skip
+URL_MAX_CHARS = 256
 
 
 @dataclass(frozen=True)
@@ -121,10 +148,43 @@ class WatchdogConfig:
             self.altitude_min_m,
             f"in [0, altitude_max_m={self.altitude_max_m})",
         )
+        for key, (low, high, unit, why) in _WATCHDOG_RANGES.items():
+            _within(f"watchdog.{key}", getattr(self, key), low, high, unit, why)
 
 
 # Connection URL schemes MAVSDK 4 understands.
 MAVSDK_URL_SCHEMES = ("udpin", "udpout", "tcpin", "tcpout", "serial", "serial_flowcontrol")
+_HOSTNAME = re.compile(r"^(?=.{1,253}$)[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?(\.[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$")
+
+
+def mavsdk_url_problem(url: object) -> str | None:
+    """What is wrong with a MAVSDK connection URL (None: nothing): ``udpin|udpout|tcpin|tcpout://HOST:PORT``
+    with an IP address or host name and a port in 1..65535, or ``serial[_flowcontrol]:///dev/X[:BAUD]``."""
+    if not isinstance(url, str):
+        return "not a string"
+    if len(url) > URL_MAX_CHARS:
+        return f"longer than {URL_MAX_CHARS} characters"
+    scheme, sep, rest = url.partition("://")
+    if not sep or scheme not in MAVSDK_URL_SCHEMES:
+        return f"unknown scheme {scheme!r}" if sep else "no scheme://"
+    if scheme.startswith("serial"):
+        device, _, baud = rest.partition(":")
+        if not device.startswith("/dev/") or len(device) <= len("/dev/"):
+            return f"serial device {device!r} is not a /dev path"
+        if baud and not (baud.isdigit() and 1200 <= int(baud) <= 10_000_000):
+            return f"baud rate {baud!r} is not a number in [1200, 10000000]"
+        return None
+    host, colon, port = rest.rpartition(":")
+    if not colon or not host:
+        return "no HOST:PORT after the scheme"
+    if not (port.isdigit() and 0 < int(port) < 65536):
+        return f"port {port!r} is not in 1..65535"
+    try:
+        ipaddress.ip_address(host.strip("[]"))
+    except ValueError:
+        if not _HOSTNAME.match(host):
+            return f"host {host[:40]!r} is neither an IP address nor a host name"
+    return None
 
 
 @dataclass(frozen=True)
@@ -139,14 +199,17 @@ class VehicleConfig:
     land_timeout_s: float = 60.0  # until disarmed after land
 
     def __post_init__(self) -> None:
+        problem = mavsdk_url_problem(self.url)
         _require(
-            isinstance(self.url, str) and self.url.partition("://")[0] in MAVSDK_URL_SCHEMES and "://" in self.url,
+            problem is None,
             "vehicle.url",
-            self.url,
-            f'a MAVSDK connection URL such as "udpin://127.0.0.1:14540" (schemes: {", ".join(MAVSDK_URL_SCHEMES)})',
+            self.url if not isinstance(self.url, str) or len(self.url) <= 80 else f"{self.url[:80]}... ({len(self.url)} characters)",
+            f'a MAVSDK connection URL such as "udpin://127.0.0.1:14540" or "serial:///dev/ttyTHS1:921600" '
+            f"(schemes: {', '.join(MAVSDK_URL_SCHEMES)}): {problem}",
         )
         for key in ("connect_timeout_s", "command_timeout_s", "health_timeout_s", "takeoff_timeout_s", "land_timeout_s"):
             _positive(f"vehicle.{key}", getattr(self, key))
+            _within(f"vehicle.{key}", getattr(self, key), 0.0, _VEHICLE_TIMEOUT_MAX_S[key], "s", "a wait that ends")
 
 
 # The exported model's variants (``cmnav export --variants``): fp32 is the file ``model_path``
@@ -221,11 +284,12 @@ class PolicyConfig:
             self.model_sha256,
             "64 hexadecimal digits (`sha256sum MODEL`)",
         )
+        cpus = len(os.sched_getaffinity(0))  # the CPUs this process may run on
         _require(
-            isinstance(self.intra_op_threads, int) and self.intra_op_threads >= 0,
+            isinstance(self.intra_op_threads, int) and 0 <= self.intra_op_threads <= cpus,
             "policy.intra_op_threads",
             self.intra_op_threads,
-            "an integer >= 0",
+            f"an integer in [0, {cpus}] (0 = ONNX Runtime's default; at most the CPUs this process may run on)",
         )
 
 
@@ -240,8 +304,12 @@ class RecorderConfig:
     # deleted so that at most max_logs remain and the older ones take at most max_total_gb.
     max_logs: int = 50
     max_total_gb: float = 20.0
+    # The log cannot be written (full disk, I/O error) before offboard: true = refuse offboard
+    # (a dry run lands; a pilot's switch gets hover, then Hold), false = fly unrecorded.
+    required: bool = True
 
     def __post_init__(self) -> None:
+        _require(isinstance(self.required, bool), "recorder.required", self.required, "true or false")
         _require(
             isinstance(self.flush_period_s, (int, float)) and 0.0 < self.flush_period_s <= 1.0,
             "recorder.flush_period_s",
@@ -256,6 +324,9 @@ class RecorderConfig:
         )
         _require(isinstance(self.max_logs, int) and self.max_logs >= 1, "recorder.max_logs", self.max_logs, "an integer >= 1")
         _positive("recorder.max_total_gb", self.max_total_gb)
+        _within("recorder.queue_size", self.queue_size, 8, 4096, "records", "memory the writer may fall behind by")
+        _within("recorder.max_logs", self.max_logs, 1, 100_000, "logs", "a directory listing that stays quick")
+        _within("recorder.max_total_gb", self.max_total_gb, 0.0, 100_000.0, "GB", "a disk")
 
 
 @dataclass(frozen=True)
@@ -288,6 +359,7 @@ class CameraConfig:
     def __post_init__(self) -> None:
         _require(self.source in CAMERA_SOURCES, "camera.source", self.source, f"one of {', '.join(CAMERA_SOURCES)}")
         _positive("camera.first_frame_timeout_s", self.first_frame_timeout_s)
+        _within("camera.first_frame_timeout_s", self.first_frame_timeout_s, 0.0, 120.0, "s", "start-up fails instead of hanging")
         if self.source == "sim":
             _require(0 < self.sim.port < 65536, "camera.sim.port", self.sim.port, 'a TCP port in 1..65535 with source = "sim"')
         if self.source == "replay":
@@ -320,6 +392,8 @@ class MissionConfig:
                 "three finite numbers [east, north, up] in metres from home",
             )
         _positive("mission.episode_timeout_s", self.episode_timeout_s)
+        _within("mission.episode_timeout_s", self.episode_timeout_s, 0.0, 600.0, "s", "an episode that ends")
+        _within("mission.max_episodes", self.max_episodes, 0, 100_000, "", "0 = until stopped")
         _require(0.0 < self.takeoff_alt_m <= 50.0, "mission.takeoff_alt_m", self.takeoff_alt_m, "in (0, 50] m above home")
         _require(
             isinstance(self.max_episodes, int) and self.max_episodes >= 0,

@@ -20,6 +20,7 @@ from typing import Any
 
 from .config import ConfigError, RuntimeConfig
 from .contract import LimitError
+from .paths import directory_problem
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -29,23 +30,54 @@ else:  # Python 3.10 (JetPack 6): the same parser as a package
 __all__ = ["ConfigError", "load_config"]
 
 
+# A config is a page of settings: anything this large (or nested this deep) is not one.
+CONFIG_MAX_BYTES = 64 * 1024
+CONFIG_MAX_DEPTH = 8
+
+
 def load_config(path: str | Path) -> RuntimeConfig:
-    """Read, type-check and validate the config at ``path``, and check the files it names."""
+    """Read, type-check and validate the config at ``path``, and check the files it names.
+    Every :class:`ConfigError` names the file and, for a value, the dotted key."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        return _load(path)
+    except ConfigError as err:
+        message = str(err)
+        raise ConfigError(message if message.startswith(str(path)) else f"{path}: {message}") from err
+
+
+def _load(path: Path) -> RuntimeConfig:
+    try:
+        size = path.stat().st_size
+        if size > CONFIG_MAX_BYTES:
+            raise ConfigError(f"{path} is {size} bytes: a config is at most {CONFIG_MAX_BYTES} bytes (is it the right file?)")
+        text = path.read_bytes().decode("utf-8")
     except OSError as err:
         raise ConfigError(f"cannot read config file {path}: {err.strerror or err}") from err
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{path} is not UTF-8 text (byte {err.start}: {err.reason}): save it as UTF-8") from err
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{path} is not valid TOML: {err}") from err
+    except RecursionError as err:
+        raise ConfigError(f"{path} nests arrays or tables too deeply to parse: a config has at most {CONFIG_MAX_DEPTH} levels") from err
+    if (depth := _depth(data)) > CONFIG_MAX_DEPTH:
+        raise ConfigError(f"{path} nests {depth} levels of arrays or tables: a config has at most {CONFIG_MAX_DEPTH}")
     config = _build(RuntimeConfig, data, "")
     if config.mission.goal_rel_home_enu_m is None:
         raise ConfigError("mission.goal_rel_home_enu_m is missing: set [mission] goal_rel_home_enu_m = [east, north, up] (m from home)")
     config = _resolve_paths(config, path.resolve().parent)
     _check_files(config)
     return config
+
+
+def _depth(value: Any) -> int:
+    if isinstance(value, dict):
+        return 1 + max((_depth(v) for v in value.values()), default=0)
+    if isinstance(value, list):
+        return 1 + max((_depth(v) for v in value), default=0)
+    return 0
 
 
 # ---------------------------------------------------------------------- TOML -> dataclasses
@@ -171,3 +203,6 @@ def _check_files(config: RuntimeConfig) -> None:
     replay = config.camera.replay.path
     if config.camera.source == "replay" and replay is not None and not replay.is_file():
         raise ConfigError(f"camera.replay.path = {str(replay)!r}: no such file")
+    log_dir = config.recorder.log_dir
+    if log_dir is not None and (problem := directory_problem(log_dir)) is not None:
+        raise ConfigError(f"recorder.log_dir = {str(log_dir)!r}: {problem} (chown it to the service user, or choose another)")

@@ -119,6 +119,8 @@ class FlightLoop:
         self._memory = PolicyMemory(model)
         self._step_started_ns = 0
         self._background: list[asyncio.Task] = []
+        # The result of the last :meth:`fly` that was cancelled (None if it returned).
+        self.interrupted: EpisodeResult | None = None
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="policy_step")
 
     # ------------------------------------------------------------------ lifecycle
@@ -182,8 +184,14 @@ class FlightLoop:
         await self.watchdog.check_goal(self._goal_enu_m, time.monotonic_ns())
         policy = asyncio.create_task(self._policy_task(episode), name="policy")
         watchdog = asyncio.create_task(self._watchdog_task(), name="watchdog")
+        self.interrupted = None
         try:
             await self._supervise(episode, policy, watchdog)
+        except asyncio.CancelledError:
+            # Stopped from outside (a stop signal): keep what was flown for the summary.
+            episode.finish("aborted", "stopped", time.monotonic_ns())
+            self.interrupted = self._result(episode)
+            raise
         finally:
             for task in (policy, watchdog):
                 task.cancel()

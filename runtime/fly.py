@@ -19,6 +19,11 @@ One MCAP log per episode in ``recorder.log_dir`` (rotated: ``recorder.max_logs``
 WATCHDOG pings from the flight loop's healthy iterations (and from the waiting phases while the
 event loop runs), so a stalled loop is killed and restarted.
 
+A stop signal (SIGTERM from ``systemctl stop``, SIGINT) at any moment ends in a state the runtime
+commands (``runtime.stop``: in offboard a hover setpoint, then Hold at once; taking off, Hold;
+landing goes on), never in the autopilot's offboard-loss failsafe; the summary's ``stop`` records
+the signal, the phase it interrupted, the action and the time.
+
 Exit codes: 0 done (episodes flown, a dry run that reached its goal, or stopped by SIGTERM/SIGINT
 — hover then Hold first if flying); 1 a failure that a restart may cure (no autopilot or camera
 yet, a dry run that did not reach the goal); 2 a failure a restart cannot cure (config, model,
@@ -32,6 +37,7 @@ import dataclasses
 import json
 import logging
 import os
+import time
 from pathlib import Path
 from typing import Awaitable, TypeVar
 
@@ -48,11 +54,12 @@ from .contract import HOVER, ContractMismatchError
 from .flight import EpisodeResult, FlightLoop
 from .log_reader import ReplayError
 from .log_rotation import new_log_path, rotate_logs
-from .model import ModelLoadError, PolicyModel, resolve_providers
+from .model import ModelLoadError, PolicyModel, check_outputs_finite, resolve_providers
 from .recorder import Recorder, RecorderError
 from .sdnotify import SystemdNotifier
-from .shutdown import close_step
-from .signals import cancel_on_stop_signals
+from .shutdown import close_step, in_daemon_thread
+from .signals import StopSignals, cancel_on_stop_signals, ignore_stop_signals
+from .stop import FlightPhase, Phase, stop_on_signal
 from .vehicle import MODE_OFFBOARD, Vehicle, VehicleError, VehicleState
 
 log = logging.getLogger(__name__)
@@ -67,6 +74,10 @@ EXIT_CONFIG = 2
 # re-sending at the first HEARTBEAT that shows another mode, so the runtime streams them itself.
 PILOT_POLL_S = 0.1
 ALIVE_PERIOD_S = 0.25  # how often the waiting phases report the event loop alive
+
+
+class RecorderRefusal(RuntimeError):
+    """The flight log cannot be written and ``recorder.required`` is true: no offboard."""
 
 
 class FlyError(RuntimeError):
@@ -85,9 +96,10 @@ def load_model(config: RuntimeConfig) -> PolicyModel:
     try:
         providers = resolve_providers(policy.providers, policy.provider_fallback)
         model = PolicyModel(policy.model_file, providers, policy.intra_op_threads, policy.tensorrt, policy.variant)
+        model.warm_up(policy.warmup_steps)  # before READY: a TensorRT engine is built (or loaded) here
+        check_outputs_finite(model)  # on the ground, before anything is armed
     except (ModelLoadError, ContractMismatchError) as err:
         raise FlyError(EXIT_CONFIG, f"model refused, nothing armed: {err}") from err
-    model.warm_up(policy.warmup_steps)  # before READY: a TensorRT engine is built (or loaded) here
     return model
 
 
@@ -107,8 +119,10 @@ class FieldProgram:
     def __init__(self, config: RuntimeConfig, notifier: SystemdNotifier) -> None:
         self.config = config
         self.notifier = notifier
-        self.summary: dict = {"episodes": [], "logs": [], "error": None}
-        self._in_offboard = False  # an episode (or the dry run's offboard phase) is under way
+        self.summary: dict = {"episodes": [], "logs": [], "error": None, "stop": None, "log_error": None}
+        self.flight = FlightPhase()  # what a stop signal interrupts (runtime.stop)
+        self.signals: StopSignals | None = None  # set by the entry point
+        self._t_start_ns = time.monotonic_ns()
 
     async def run(self) -> int:
         """Everything from model load to exit; returns the exit code (see the module docstring)."""
@@ -141,9 +155,7 @@ class FieldProgram:
         except (RealSenseUnavailableError, ReplayError) as err:
             raise FlyError(EXIT_FAILED, f"camera: {err}") from err
         except asyncio.CancelledError:
-            if self._in_offboard:
-                log.warning("stopping in flight: hover, then Hold")
-                await loop.safe_stop()
+            await self.stop(loop, vehicle)
             raise
         finally:
             await close_step("the flight loop and camera", loop.close)
@@ -151,12 +163,21 @@ class FieldProgram:
 
     # ------------------------------------------------------------------ start-up
 
+    async def stop(self, loop: FlightLoop | None, vehicle: Vehicle | None) -> None:
+        """The safe stop after a stop signal, once (``runtime.stop``); records ``summary["stop"]``."""
+        if self.summary["stop"] is not None or self.signals is None:
+            return
+        self.summary["stop"] = await stop_on_signal(self.signals, self.flight, loop, vehicle, self._t_start_ns)
+
     async def _start(self, vehicle: Vehicle, loop: FlightLoop) -> None:
         self._status(f"connecting to the autopilot on {self.config.vehicle.url}")
+        self.flight.enter(Phase.CONNECTING)
         await self._alive_while(vehicle.connect())
         await loop.start()
         self._status("waiting for autopilot health (armable, local position, home)")
+        self.flight.enter(Phase.WAITING_FOR_HEALTH)
         await self._alive_while(vehicle.wait_ready())
+        self.flight.enter(Phase.WAITING_FOR_CAMERA)
         self._status(f"waiting for the first {self.config.camera.source} camera frame")
         timeout_s = self.config.camera.first_frame_timeout_s
         try:
@@ -175,35 +196,61 @@ class FieldProgram:
         while max_episodes == 0 or episode < max_episodes:
             episode += 1
             state = await self._wait_for_offboard(vehicle, episode)
-            await self._episode(loop, model, episode, state)
+            try:
+                recorder = self._open_recorder(model, episode)
+            except RecorderRefusal as err:
+                # The pilot's switch cannot be prevented, only answered: hover, then Hold at once.
+                log.error("episode %d refused, hover then Hold: %s", episode, err)
+                self.flight.enter(Phase.ENTERING_OFFBOARD)
+                await loop.safe_stop()
+                self.flight.enter(Phase.HOLDING)
+                self.summary["episodes"].append({"episode": episode, "outcome": "refused", "abort_reason": str(err)})
+                self.notifier.status(f"episode {episode}: refused ({err})")
+                continue
+            await self._episode(loop, model, episode, state, recorder)
         return EXIT_OK
 
     async def _dry_run(self, vehicle: Vehicle, loop: FlightLoop, model: PolicyModel) -> int:
         """Arm, take off, enter offboard, fly one episode, land (``mission.allow_arm_takeoff``)."""
         altitude_m = self.config.mission.takeoff_alt_m
         self._status(f"dry run: arming and taking off to {altitude_m:.2f} m")
+        self.flight.enter(Phase.ARMING)
         await vehicle.arm()
+        self.flight.enter(Phase.TAKING_OFF)
         await vehicle.takeoff(altitude_m)
         await self._alive_while(vehicle.wait_takeoff_done(altitude_m))
-        self._in_offboard = True
+        try:
+            recorder = self._open_recorder(model, 1)
+        except RecorderRefusal as err:
+            self.summary["error"] = f"offboard refused: {err}"
+            log.error("not entering offboard: %s; landing", err)
+            await self._land(vehicle)
+            return EXIT_CONFIG
+        self.flight.enter(Phase.ENTERING_OFFBOARD)
         await vehicle.start_offboard(HOVER)
         state = await self._alive_while(
             vehicle.wait_until(lambda s: s.flight_mode == MODE_OFFBOARD, self.config.vehicle.command_timeout_s, "offboard mode")
         )
-        result = await self._episode(loop, model, 1, state)
+        result = await self._episode(loop, model, 1, state, recorder)
         if loop.watchdog.pilot_took_over:
             log.warning("the pilot took over: not landing, the vehicle is theirs")
             return EXIT_FAILED
+        await self._land(vehicle)
+        return EXIT_OK if result.outcome == "success" else EXIT_FAILED
+
+    async def _land(self, vehicle: Vehicle) -> None:
         self._status("dry run: landing")
+        self.flight.enter(Phase.LANDING)
         await vehicle.land()
         await self._alive_while(vehicle.wait_disarmed())
+        self.flight.enter(Phase.DONE)
         log.info("landed and disarmed")
-        return EXIT_OK if result.outcome == "success" else EXIT_FAILED
 
     async def _wait_for_offboard(self, vehicle: Vehicle, episode: int) -> VehicleState:
         """Stream hover setpoints and wait until the pilot switches *into* offboard, armed and in the air."""
         seen_outside = False
         last_status = ""
+        self.flight.enter(Phase.WAITING_FOR_PILOT)
         while True:
             await vehicle.set_velocity_body(HOVER)  # ignored outside offboard; lets the pilot select it
             state = vehicle.state()
@@ -223,30 +270,48 @@ class FieldProgram:
             self.notifier.loop_alive()
             await asyncio.sleep(PILOT_POLL_S)
 
-    async def _episode(self, loop: FlightLoop, model: PolicyModel, episode: int, state: VehicleState) -> EpisodeResult:
+    async def _episode(
+        self, loop: FlightLoop, model: PolicyModel, episode: int, state: VehicleState, recorder: Recorder | None
+    ) -> EpisodeResult:
         """One offboard episode toward the goal (relative to home), recorded to its own log."""
         assert state.home_enu_m is not None and self.config.mission.goal_rel_home_enu_m is not None
         goal_enu_m = state.home_enu_m + np.asarray(self.config.mission.goal_rel_home_enu_m)
-        recorder = self._open_recorder(model, episode)
         loop.recorder = recorder
-        self._in_offboard = True
+        self.flight.enter(Phase.EPISODE)
         self._status(f"episode {episode}: flying to the goal {np.round(goal_enu_m - state.home_enu_m, 2).tolist()} m from home")
         try:
             result = await loop.fly(goal_enu_m, self.config.mission.episode_timeout_s)
+            self.flight.enter(Phase.HOLDING)
+        except asyncio.CancelledError:
+            # A stop signal: the safe stop now, while this episode's log is still open to record it.
+            await self.stop(loop, loop.vehicle)
+            if loop.interrupted is not None:
+                self._record_episode(loop.interrupted, episode, recorder, abort_reason=f"stopped by {self.summary['stop']['cause']}")
+            raise
         finally:
-            self._in_offboard = False
             loop.recorder = None
             if recorder is not None:
-                await asyncio.get_running_loop().run_in_executor(None, recorder.close)
-        record = dataclasses.asdict(result)
-        record.update(episode=episode, log=str(recorder.path) if recorder else None)
-        self.summary["episodes"].append(record)
+                await close_step("the flight log", lambda: in_daemon_thread("recorder-close", recorder.close))
+                self._record_log(recorder)
+        self._record_episode(result, episode, recorder)
         log.info("episode %d: %s in %.2f s (%d steps, final distance %.2f m, trips %s)", episode, result.outcome,
                  result.time_s, result.frames, result.final_distance_m, [t["cause"] for t in result.watchdog_trips])  # fmt: skip
         self.notifier.status(f"episode {episode}: {result.outcome}" + (f" ({result.abort_reason})" if result.abort_reason else ""))
         return result
 
+    def _record_episode(self, result: EpisodeResult, episode: int, recorder: Recorder | None, abort_reason: str | None = None) -> None:
+        record = dataclasses.asdict(result)
+        record.update(episode=episode, log=str(recorder.path) if recorder else None)
+        if recorder is not None:
+            record.update(log_error=recorder.stats.log_error, log_records_written=recorder.stats.written,
+                          log_records_dropped=recorder.stats.dropped)  # fmt: skip
+        if abort_reason is not None:
+            record["abort_reason"] = abort_reason
+        self.summary["episodes"].append(record)
+
     def _open_recorder(self, model: PolicyModel, episode: int) -> Recorder | None:
+        """The episode's log, opened (and its first record written) before offboard.  If it cannot
+        be written: :class:`RecorderRefusal` (``recorder.required``), else None (flies unrecorded)."""
         cfg = self.config.recorder
         if cfg.log_dir is None:
             return None
@@ -255,11 +320,18 @@ class FieldProgram:
             path = new_log_path(cfg.log_dir, episode)
             recorder = Recorder(path, cfg, metadata={**model.log_metadata(), "entry": "fly", "episode": str(episode)})
         except (OSError, RecorderError) as err:
-            # Flying unrecorded beats not flying once the pilot has handed over the vehicle.
-            log.error("episode %d is not recorded: %s", episode, err)
+            self.summary["log_error"] = str(err)
+            if cfg.required:
+                raise RecorderRefusal(f"the flight log cannot be written ({err}); recorder.required = true "
+                                      "refuses to fly unrecorded (free disk space, or set it false)") from err  # fmt: skip
+            log.error("episode %d is not recorded (recorder.required = false): %s", episode, err)
             return None
         self.summary["logs"].append(str(path))
         return recorder
+
+    def _record_log(self, recorder: Recorder) -> None:
+        if recorder.stats.log_error is not None:
+            self.summary["log_error"] = recorder.stats.log_error
 
     # ------------------------------------------------------------------ helpers
 
@@ -280,7 +352,7 @@ class FieldProgram:
 
 
 async def _main(program: FieldProgram) -> int:
-    cancel_on_stop_signals()
+    program.signals = cancel_on_stop_signals()
     try:
         return await program.run()
     except FlyError as err:
@@ -288,8 +360,8 @@ async def _main(program: FieldProgram) -> int:
         program.summary["error"] = str(err)
         return err.exit_code
     except asyncio.CancelledError:
-        log.warning("stopped by a signal")
-        program.summary["error"] = "stopped by a signal"
+        await program.stop(None, None)  # stopped before the vehicle existed: recorded, nothing to command
+        program.summary["error"] = f"stopped by {program.summary['stop']['cause']}"
         return EXIT_OK
 
 
@@ -304,9 +376,10 @@ def run_fly(config_path: str | Path, print_json: bool = False, check_only: bool 
         if check_only:
             model = load_model(config)
     except (ConfigError, FlyError) as err:
-        log.error("config %s refused, nothing started: %s", config_path, err)
+        message = str(err) if str(err).startswith(str(config_path)) else f"{config_path}: {err}"
+        log.error("config refused, nothing started: %s", message)
         if print_json:
-            print(json.dumps({"episodes": [], "logs": [], "error": f"config: {err}"}))
+            print(json.dumps({"episodes": [], "logs": [], "error": f"config: {message}"}))
         return EXIT_CONFIG
     if check_only:
         print(f"{config_path}: config valid; model {model.path} loads on {list(model.providers)} "
@@ -317,6 +390,7 @@ def run_fly(config_path: str | Path, print_json: bool = False, check_only: bool 
     try:
         code = asyncio.run(_main(program))
     finally:
+        ignore_stop_signals()
         notifier.stopping()
         notifier.close()
     if print_json:

@@ -24,6 +24,7 @@ from onnxruntime.capi import onnxruntime_pybind11_state as _ort_state
 from .config import TensorRtConfig
 from .contract import check_contract_metadata
 from .contract import constants as c
+from .contract.images import preprocess_depth, preprocess_gray
 
 log = logging.getLogger(__name__)
 
@@ -100,7 +101,7 @@ class PolicyModel:
                 str(self.path), sess_options=options, providers=session_providers(providers, tensorrt or TensorRtConfig())
             )
         except _LOAD_ERRORS as err:
-            raise ModelLoadError(f"{self.path} is not a loadable ONNX model ({err}): {_FIX}") from err
+            raise ModelLoadError(f"{self.path} is not a loadable ONNX model ({_one_line(err)}): {_FIX}") from err
         metadata = self._session.get_modelmeta().custom_metadata_map
         check_contract_metadata(metadata, source=str(self.path))
         self.variant = metadata.get(KEY_VARIANT, "fp32")
@@ -183,6 +184,42 @@ class PolicyModel:
         action, hidden_next, latent = self._session.run(self._output_names, feeds)
         return StepOutput(action=action[0], hidden_next=hidden_next[0], latent=latent[0])
 
+
+
+def check_outputs_finite(model: PolicyModel) -> None:
+    """Run two steps before anything flies — all-zero inputs, then a synthetic camera frame
+    (textured gray, a depth ramp with invalid pixels, through the contract's preprocessing) with a
+    goal ahead and the first step's GRU state — and raise :class:`ModelLoadError` if any output is
+    NaN/Inf or the step fails.  The flight watchdog trips on a NaN action too, but in the air;
+    this catches a broken export on the ground (``--check``, before arming, before the SITL vehicle)."""
+    size = (c.IMAGE_SIZE_PX, c.IMAGE_SIZE_PX)
+    rows, cols = np.mgrid[0 : c.SIM_CAMERA_HEIGHT_PX, 0 : c.SIM_CAMERA_WIDTH_PX]
+    gray_u8 = ((rows * 7 + cols * 3) % 256).astype(np.uint8)
+    depth_m = np.linspace(0.5, 8.0, c.SIM_CAMERA_WIDTH_PX, dtype=np.float32)[None, :].repeat(c.SIM_CAMERA_HEIGHT_PX, axis=0)
+    depth_m[:, : c.SIM_CAMERA_WIDTH_PX // 10] = 0.0  # invalid, as the sensor reports it
+    state = np.zeros(c.STATE_DIM, np.float32)
+    state[0], state[3] = 1.0, 0.5  # goal ahead, 6 m away
+    cases = [
+        ("all-zero inputs", np.zeros(size, np.float32), np.zeros(size, np.float32), np.zeros(c.STATE_DIM, np.float32), model.initial_hidden()),
+        ("a synthetic camera frame", preprocess_gray(gray_u8), preprocess_depth(depth_m), state, None),
+    ]  # fmt: skip
+    hidden_next = model.initial_hidden()
+    for what, gray, depth, step_state, hidden in cases:
+        try:
+            out = model.step(gray, depth, step_state, hidden_next if hidden is None else hidden)
+        except (*_LOAD_ERRORS, _ort_state.RuntimeException) as err:
+            raise ModelLoadError(f"{model.path} fails a policy step on {what} ({_one_line(err)}): {_FIX}") from err
+        bad = [name for name, value in (("action", out.action), ("hidden_next", out.hidden_next), ("latent", out.latent))
+               if not np.all(np.isfinite(value))]  # fmt: skip
+        if bad:
+            raise ModelLoadError(f"{model.path} outputs NaN/Inf ({', '.join(bad)}) on {what}: a broken export or "
+                                 f"checkpoint; nothing is flown with it — re-export it ({_FIX})")  # fmt: skip
+        hidden_next = out.hidden_next
+
+
+def _one_line(err: BaseException) -> str:
+    """An error message on one line (ONNX Runtime's can span several)."""
+    return " ".join(str(err).split())
 
 
 def file_sha256(path: str | Path) -> str:

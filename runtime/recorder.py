@@ -20,7 +20,10 @@ monotonic times in their fields.
 
 The flight loop must never wait on the disk: every ``log_*`` call only puts a record into a
 bounded queue (dropped and counted when full) and a writer thread encodes, compresses (zstd) and
-writes.  The writer flushes (closes the chunk) at least every ``flush_period_s``, so a killed
+writes.  The recorder is a best-effort observer: a failure to write or close the log (full disk,
+I/O error, foxglove's ``RuntimeError``) is logged once, kept in ``stats.log_error``, and from then
+on records are dropped and counted — it never raises into the flight.  Only opening raises
+(:class:`RecorderError`), so that a program can refuse to fly unrecorded before offboard.  The writer flushes (closes the chunk) at least every ``flush_period_s``, so a killed
 process loses about that much.  A log cut short by a kill has no summary section: read it with a
 streaming reader (``mcap.reader.NonSeekingReader``, ``iter_messages(log_time_order=False)``), which
 yields every message of every finished chunk, then raises ``mcap.exceptions.EndOfFile`` at the cut
@@ -53,6 +56,8 @@ from .status_text import StatusText
 from .vehicle import VehicleState
 
 log = logging.getLogger(__name__)
+# foxglove reports a failed channel write here (one warning per message) instead of raising.
+_FOXGLOVE_SINK_LOG = logging.getLogger("foxglove.log_sink_set")
 
 TOPIC_DEPTH = "/camera/depth"
 TOPIC_GRAY = "/camera/gray"
@@ -108,8 +113,9 @@ class RecorderError(RuntimeError):
 @dataclass
 class RecorderStats:
     written: int = 0
-    dropped: int = 0
+    dropped: int = 0  # queue full, or after a write failure
     flushes: int = 0
+    log_error: str | None = None  # the first failure to write or close the log (None: none)
 
 
 _STOP = object()
@@ -126,6 +132,7 @@ class Recorder:
         self._offset_ns = time.time_ns() - time.monotonic_ns()
         self._queue: queue.Queue = queue.Queue(maxsize=config.queue_size)
         self._context = foxglove.Context()
+        self._writer = None
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._writer = foxglove.open_mcap(
@@ -133,12 +140,16 @@ class Recorder:
                 context=self._context,
                 writer_options=MCAPWriteOptions(compression=MCAPCompression.Zstd, compression_threads=0),
             )
-        except (OSError, RuntimeError) as err:
-            raise RecorderError(f"cannot create flight log {self.path} ({err}): check the log directory exists and is writable") from err
-        self._writer.write_metadata(
-            "cmnav",
-            {"contract_version": CONTRACT_VERSION, "monotonic_to_unix_offset_ns": str(self._offset_ns), **(metadata or {})},
-        )
+            # Written at once: a full disk shows here, before the flight, not in the air.
+            self._writer.write_metadata(
+                "cmnav",
+                {"contract_version": CONTRACT_VERSION, "monotonic_to_unix_offset_ns": str(self._offset_ns), **(metadata or {})},
+            )
+            self._writer.flush()
+        except (OSError, RuntimeError) as err:  # foxglove raises RuntimeError (FoxgloveError) for I/O errors
+            self._discard_writer()
+            raise RecorderError(f"cannot create flight log {self.path} ({err}): check the log directory exists, "
+                                "is writable and has free space") from err  # fmt: skip
         self._images = {
             TOPIC_DEPTH: RawImageChannel(TOPIC_DEPTH, context=self._context),
             TOPIC_GRAY: RawImageChannel(TOPIC_GRAY, context=self._context),
@@ -158,6 +169,7 @@ class Recorder:
         }
         self._closed = False
         self._thread = threading.Thread(target=self._run, name="mcap_recorder", daemon=True)
+        _FOXGLOVE_SINK_LOG.addFilter(self._sink_filter)
         self._thread.start()
         log.info("recording flight log to %s", self.path)
 
@@ -191,9 +203,13 @@ class Recorder:
         self._put(("status_text", text.t_ns, text))
 
     def close(self, timeout_s: float = 5.0) -> None:
-        """Write what is queued, then close the file (its summary makes it seekable)."""
+        """Write what is queued, then close the file (its summary makes it seekable).  Never raises:
+        a failure is logged once and kept in ``stats.log_error``.  The writer thread gets
+        ``timeout_s``; the file's close itself can block on a hung disk, so callers in the flight
+        program run this in a daemon thread with a bound (``runtime.shutdown``)."""
         if self._closed:
             return
+        self._closed = True
         if self._thread.is_alive():
             try:
                 self._queue.put(_STOP, timeout=timeout_s)
@@ -201,15 +217,47 @@ class Recorder:
                 log.error("flight log writer is stuck; closing %s without the queued records", self.path)
             self._thread.join(timeout_s)
         if self._thread.is_alive():
-            log.error("flight log writer did not finish within %.1f s; %s may lack its summary", timeout_s, self.path)
+            self._fail(f"the writer did not finish within {timeout_s:.1f} s; {self.path} may lack its summary")
             return
-        self._closed = True
-        self._writer.close()
-        log.info("flight log %s closed: %d records written, %d dropped", self.path, self.stats.written, self.stats.dropped)
+        try:
+            self._writer.close()
+        except (OSError, RuntimeError) as err:
+            self._fail(f"closing {self.path} failed: {err}")
+        finally:
+            _FOXGLOVE_SINK_LOG.removeFilter(self._sink_filter)
+        log.info("flight log %s closed: %d records written, %d dropped%s", self.path, self.stats.written, self.stats.dropped,
+                 f" (log error: {self.stats.log_error})" if self.stats.log_error else "")  # fmt: skip
+
+    def _fail(self, message: str) -> None:
+        """Keep and log the first failure; later ones (consequences of the first) only at debug level."""
+        if self.stats.log_error is None:
+            self.stats.log_error = message
+            log.error("flight log: %s; the flight goes on, further records are dropped and counted", message)
+        else:
+            log.debug("flight log: %s", message)
+
+    def _sink_filter(self, record: logging.LogRecord) -> bool:
+        """A failed write that foxglove only logs: fail the recorder (once) instead of a warning per message."""
+        if threading.current_thread() is not self._thread:
+            return True
+        self._fail(f"writing {self.path} failed: {record.getMessage()}")
+        return False
+
+    def _discard_writer(self) -> None:
+        """Close a writer whose first write failed (an unclosed one aborts the interpreter's exit)."""
+        if self._writer is None:
+            return
+        try:
+            self._writer.close()
+        except (OSError, RuntimeError) as err:
+            log.debug("closing the failed flight log %s: %s", self.path, err)
 
     # ------------------------------------------------------------------ writer thread
 
     def _put(self, item: tuple) -> None:
+        if self.stats.log_error is not None:
+            self.stats.dropped += 1
+            return
         try:
             self._queue.put_nowait(item)
         except queue.Full:
@@ -219,12 +267,19 @@ class Recorder:
 
     def _run(self) -> None:
         try:
-            self._write_until_stopped()
-        except BaseException:
-            log.exception("flight log writer stopped on an error; further records are dropped")
-            raise
+            if self._write_until_stopped():
+                return
+        except (OSError, RuntimeError) as err:  # full disk, I/O error (foxglove: RuntimeError)
+            self._fail(f"writing {self.path} failed: {err}")
+        except Exception as err:  # noqa: BLE001 - an encoding bug must not stop the observer silently either
+            log.exception("flight log writer failed")
+            self._fail(f"writing {self.path} failed: {err!r}")
+        # Stay until close(): count what the loop still queued as dropped.
+        while (item := self._queue.get()) is not _STOP:
+            self.stats.dropped += 1
 
-    def _write_until_stopped(self) -> None:
+    def _write_until_stopped(self) -> bool:
+        """Write until close() (True) or a write failure foxglove only logged (False)."""
         next_flush = time.monotonic() + self.config.flush_period_s
         while True:
             try:
@@ -232,9 +287,12 @@ class Recorder:
             except queue.Empty:
                 item = None
             if item is _STOP:
-                return
+                return True
             if item is not None:
                 self._write(*item)
+                if self.stats.log_error is not None:
+                    self.stats.dropped += 1
+                    return False  # foxglove logged the write as failed (see _sink_filter)
                 self.stats.written += 1
             if time.monotonic() >= next_flush:
                 self._writer.flush()

@@ -26,7 +26,7 @@ import numpy as np
 from .camera.frame import Frame
 from .contract import ContractMismatchError, ImageContractError
 from .log_reader import FRAME_TOPICS, STEP_TOPICS, FlightLogReader, LoggedFrame, LoggedStep, ReplayError
-from .model import ModelLoadError, PolicyModel, file_sha256
+from .model import ModelLoadError, PolicyModel, check_outputs_finite, file_sha256
 from .policy_step import PolicyMemory, StepInputs, compute_step
 
 log = logging.getLogger(__name__)
@@ -163,7 +163,9 @@ def _load_model(reader: FlightLogReader, model_path: str | Path | None, provider
         if recorded_sha and file_sha256(model_path) != recorded_sha:
             log.warning("%s changed since the flight (sha256 differs from the log's); differences are expected", model_path)
     try:
-        return PolicyModel(model_path, providers)
+        model = PolicyModel(model_path, providers)
+        check_outputs_finite(model)
+        return model
     except (ModelLoadError, ContractMismatchError) as err:
         raise ReplayError(f"cannot replay {reader.path} with {model_path}: {err}") from err
 

@@ -44,10 +44,11 @@ from .contract import HOVER, ContractMismatchError
 from .fault_injection import FaultyPolicy, shrink_geofence, shrink_geofence_at
 from .faults import FaultKind, FaultSite, Injection, InjectionError, parse_injection
 from .flight import EpisodeResult, FlightLoop, log_task_failure
-from .model import ModelLoadError, PolicyModel
+from .model import ModelLoadError, PolicyModel, check_outputs_finite
 from .recorder import Recorder, RecorderError
 from .shutdown import close_step, in_daemon_thread
-from .signals import cancel_on_stop_signals
+from .signals import StopSignals, cancel_on_stop_signals, ignore_stop_signals
+from .stop import FlightPhase, Phase, stop_on_signal
 from .vehicle import MODE_OFFBOARD, Vehicle, VehicleError
 from .watchdog import TripCause
 
@@ -114,8 +115,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
-async def fly_episode(args: argparse.Namespace, summary: dict) -> EpisodeResult:
-    """Everything between process start and disarm; fills ``summary`` as it goes."""
+async def fly_episode(args: argparse.Namespace, summary: dict, signals: StopSignals | None = None) -> EpisodeResult:
+    """Everything between process start and disarm; fills ``summary`` as it goes.  On a stop
+    signal (``signals``) it commands the safe state of the phase it interrupted (``runtime.stop``),
+    records ``summary["stop"]`` and what was flown, and re-raises the cancellation."""
+    flight = FlightPhase()
     config = RuntimeConfig(
         policy=args.policy,
         vehicle=VehicleConfig(url=f"udpin://127.0.0.1:{args.mavlink_port}"),
@@ -126,6 +130,7 @@ async def fly_episode(args: argparse.Namespace, summary: dict) -> EpisodeResult:
         summary["cpu_affinity"] = list(pin_process(config.runtime.cpu_affinity))
     try:
         model = PolicyModel(config.policy.model_path, config.policy.providers, config.policy.intra_op_threads)
+        check_outputs_finite(model)
     except (ModelLoadError, ContractMismatchError) as err:
         raise FlightError(f"model refused, nothing armed: {err}") from err
     summary["model"] = {"path": str(model.path), "hidden_size": model.hidden_size, "providers": list(model.providers)}
@@ -140,12 +145,14 @@ async def fly_episode(args: argparse.Namespace, summary: dict) -> EpisodeResult:
     step_faults = [i for i in args.inject if i.kind in (FaultKind.INFERENCE_OVERRUN, FaultKind.NAN_ACTION)]
     policy = FaultyPolicy(model, step_faults) if step_faults else None
     loop = FlightLoop(config, policy or model, vehicle, camera, recorder)
-    offboard_started = False
     try:
+        flight.enter(Phase.CONNECTING)
         await vehicle.connect()
         await loop.start()
+        flight.enter(Phase.WAITING_FOR_HEALTH)
         state = await vehicle.wait_ready()
         log.info("vehicle ready: home %s (local ENU m)", np.round(state.home_enu_m, 2))
+        flight.enter(Phase.WAITING_FOR_CAMERA)
         try:
             await loop.wait_first_frame(FIRST_FRAME_TIMEOUT_S)
         except asyncio.TimeoutError as err:
@@ -153,10 +160,12 @@ async def fly_episode(args: argparse.Namespace, summary: dict) -> EpisodeResult:
                 f"no camera frame on 127.0.0.1:{args.camera_port} within {FIRST_FRAME_TIMEOUT_S} s "
                 f"(camera link: {camera.stats}): is the SITL vehicle serving frames?"
             ) from err
+        flight.enter(Phase.ARMING)
         await vehicle.arm()
+        flight.enter(Phase.TAKING_OFF)
         await vehicle.takeoff(args.takeoff_alt_m)
         await vehicle.wait_takeoff_done(args.takeoff_alt_m)
-        offboard_started = True
+        flight.enter(Phase.ENTERING_OFFBOARD)
         t_request_ns = time.monotonic_ns()
         try:
             await vehicle.start_offboard(HOVER)
@@ -165,14 +174,18 @@ async def fly_episode(args: argparse.Namespace, summary: dict) -> EpisodeResult:
             result = await _offboard_refused(loop, vehicle, err, t_request_ns)
             summary["t_episode_start_s"] = t_request_ns / 1e9
             _fill(summary, result)
+            flight.enter(Phase.LANDING)
             await vehicle.land()
             await vehicle.wait_disarmed()
+            flight.enter(Phase.DONE)
             log.info("landed and disarmed without flying the policy")
             return result
         summary["t_launch_to_offboard_s"] = round(process_age_s(), 3)
         home_enu_m = vehicle.state().home_enu_m
         goal_enu_m = home_enu_m + args.goal_rel_home
+        flight.enter(Phase.EPISODE)
         result = await _fly_with_faults(loop, policy, args.inject, goal_enu_m, args.timeout_s, summary)
+        flight.enter(Phase.HOLDING)
         _fill(summary, result)
         log.info("episode %s in %.2f s (%d frames, final distance %.2f m)", result.outcome, result.time_s,
                  result.frames, result.final_distance_m)  # fmt: skip
@@ -182,15 +195,19 @@ async def fly_episode(args: argparse.Namespace, summary: dict) -> EpisodeResult:
         if result.abort_reason == TripCause.VEHICLE_FAULT.value and not await _still_armed(vehicle):
             log.warning("the autopilot reported a fault and disarmed: nothing to land")
             return result
+        flight.enter(Phase.LANDING)
         await vehicle.land()
         await vehicle.wait_disarmed()
+        flight.enter(Phase.DONE)
         log.info("landed and disarmed")
         return result
     except VehicleError as err:
         raise FlightError(f"vehicle: {err}") from err
     except asyncio.CancelledError:
-        if offboard_started:
-            await loop.safe_stop()
+        if signals is not None:
+            summary["stop"] = await stop_on_signal(signals, flight, loop, vehicle, T_IMPORT_NS)
+        if loop.interrupted is not None and "time_s" not in summary:
+            _fill(summary, loop.interrupted)
         raise
     finally:
         summary["camera"] = vars(camera.stats).copy()
@@ -271,9 +288,9 @@ def _fill(summary: dict, result: EpisodeResult) -> None:
 
 
 async def _main(args: argparse.Namespace, summary: dict) -> int:
-    cancel_on_stop_signals()
+    signals = cancel_on_stop_signals()
     try:
-        result = await fly_episode(args, summary)
+        result = await fly_episode(args, summary, signals)
     except FlightError as err:
         log.error("%s", err)
         summary["error"] = str(err)
@@ -282,8 +299,11 @@ async def _main(args: argparse.Namespace, summary: dict) -> int:
         summary["abort_reason"] = str(err)
         return 2
     except asyncio.CancelledError:
-        log.error("terminated by a signal")
-        summary.update(outcome="aborted", abort_reason="terminated by a signal")
+        cause = signals.received or "cancelled"
+        log.error("terminated by %s", cause)
+        summary.update(outcome="aborted", abort_reason=f"stopped by {cause}")
+        if summary.get("stop") is None:  # before the vehicle existed (model load, log): nothing to command
+            summary["stop"] = await stop_on_signal(signals, FlightPhase(), None, None, T_IMPORT_NS)
         return 1
     return 0 if result.outcome == "success" else 1
 
@@ -304,7 +324,10 @@ def main(argv: list[str] | None = None) -> int:
         "t_launch_to_offboard_s": None,
         "watchdog_trips": [],
     }
-    code = asyncio.run(_main(args, summary))
+    try:
+        code = asyncio.run(_main(args, summary))
+    finally:
+        ignore_stop_signals()
     args.summary.parent.mkdir(parents=True, exist_ok=True)
     args.summary.write_text(json.dumps(summary, indent=2))
     log.info("summary written to %s (outcome %s, exit %d)", args.summary, summary["outcome"], code)

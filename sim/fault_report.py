@@ -19,7 +19,7 @@ STOPPED_SPEED_M_S = 0.2
 # are one, but the trace samples positions every 50 ms.
 MATCH_TOLERANCE_S = 0.05
 VEHICLE_FAILSAFE_CAUSE = "offboard_loss_failsafe"
-VEHICLE_FAILSAFE_RESPONSE = "vehicle_hold"
+VEHICLE_FAILSAFE_RESPONSE = "vehicle_failsafe"
 _MEASURED = ("t_inject_s", "cause", "detect_ms", "response", "trip_after_inject_ms", "stopped_within_s",
              "stopped_after_trip_s", "hold_entered_s")  # fmt: skip
 
@@ -36,7 +36,8 @@ def fault_records(injections: tuple[Injection, ...], trace: dict, flight: dict, 
     commanded to land (or the trace ends); ``stopped_after_trip_s``: the same from the trip (0 if
     it had stopped before).  ``hold_entered_s``: injection -> the vehicle's first Hold after it.
     A fault whose time never came (the flight ended first) has ``injected`` false and nulls.
-    runtime-kill's trip is the vehicle's own offboard-loss failsafe, read from the mode log.
+    runtime-kill's trip is the vehicle's own offboard-loss failsafe (the mode COM_OBL_RC_ACT selects;
+    PX4's default Position mode lands a vehicle without RC), read from the mode log.
     """
     t = np.asarray(trace["t_s"], dtype=np.float64)
     speed = np.linalg.norm(np.asarray(trace["vel_enu_m_s"], dtype=np.float64).reshape(-1, 3), axis=1)
@@ -75,21 +76,24 @@ def fault_records(injections: tuple[Injection, ...], trace: dict, flight: dict, 
 
 
 def vehicle_failsafe_trip(mode_log: list[tuple[float, str]], t_kill_s: float) -> tuple[dict | None, float | None]:
-    """The vehicle's own reaction to the runtime's death: its first Hold after the kill, as a trip
-    record (``t_s`` and ``hold_t_s`` from the kill, s; ``detect_ms`` kill -> Hold) and the Hold's
-    time; (None, None) if it never held."""
-    t_hold = next((tm for tm, mode in mode_log if mode == "HOLD" and tm >= t_kill_s), None)
-    if t_hold is None:
+    """The vehicle's own reaction to the runtime's death: its first mode change out of OFFBOARD
+    after the kill (the offboard-loss failsafe: the mode COM_OBL_RC_ACT selects), as a trip record
+    (``t_s`` from the kill, s; ``detect_ms`` kill -> failsafe; ``mode``: the failsafe's mode) and
+    its time; (None, None) if it never left OFFBOARD."""
+    change = next(((tm, mode) for tm, mode in mode_log if mode != "OFFBOARD" and tm >= t_kill_s), None)
+    if change is None:
         return None, None
+    t_failsafe, mode = change
     return {
         "cause": VEHICLE_FAILSAFE_CAUSE,
         "detail": "runtime killed (SIGKILL): setpoints stopped, the vehicle's offboard-loss failsafe "
-        "(COM_OF_LOSS_T) switched to Hold; recorded by cmnav sitl from the vehicle's mode log",
-        "t_s": _round(t_hold - t_kill_s),
-        "detect_ms": _round(1000.0 * (t_hold - t_kill_s)),
+        f"(COM_OF_LOSS_T, COM_OBL_RC_ACT) switched to {mode}; recorded by cmnav sitl from the vehicle's mode log",
+        "t_s": _round(t_failsafe - t_kill_s),
+        "detect_ms": _round(1000.0 * (t_failsafe - t_kill_s)),
         "response": VEHICLE_FAILSAFE_RESPONSE,
-        "hold_t_s": _round(t_hold - t_kill_s),
-    }, t_hold
+        "mode": mode,
+        "hold_t_s": _round(t_failsafe - t_kill_s) if mode == "HOLD" else None,
+    }, t_failsafe
 
 
 def runtime_trip_after(flight: dict, t_inject: float) -> tuple[dict | None, float | None]:

@@ -19,22 +19,30 @@ the summary gets a ``faults`` list measured on ground truth (:func:`fault_record
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
+import math
 import os
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
+from runtime.contract import ContractMismatchError
 from runtime.contract.constants import GOAL_REACHED_RADIUS_M
 from runtime.faults import FaultKind, FaultSite, Injection, InjectionError, parse_injection
+from runtime.model import ModelLoadError, PolicyModel, check_outputs_finite
+from runtime.paths import directory_problem
 
+from .episode_args import check_level_seed
 from .fault_report import fault_records, runtime_trip_after, vehicle_failsafe_trip
 from .follower.pose_link import AutopilotUrlError, parse_autopilot_url
 from .plot import plot_top_view
@@ -55,6 +63,57 @@ FAULT_OBSERVE_S = 2.0
 
 class SitlError(RuntimeError):
     """The SITL episode could not be run (a process failed to start or died)."""
+
+
+class SitlStopped(Exception):
+    """SIGTERM / SIGINT reached ``cmnav sitl`` (raised by its handler in the main thread)."""
+
+
+class _StopSignals:
+    """SIGTERM / SIGINT while ``cmnav sitl`` runs: the first one interrupts the wait (raises
+    :class:`SitlStopped`) so that the children are stopped by PID — the runtime with SIGTERM, so it
+    commands hover then Hold and writes its summary, then the vehicle.  The children run in their
+    own sessions, so a Ctrl-C in the terminal reaches only this process, which stops them in that
+    order (the vehicle must still be there to take the runtime's Hold).  Further signals, and any
+    that come once the children are being stopped, are logged and ignored: they must not cut the
+    stop short (each child is SIGKILLed after STOP_TIMEOUT_S if it ignores SIGTERM)."""
+
+    def __init__(self) -> None:
+        self.received: str | None = None
+        self.may_raise = True
+        self._previous: dict[int, object] = {}
+
+    def install(self) -> None:
+        if threading.current_thread() is threading.main_thread():  # signal handlers live there only
+            self._previous = {sig: signal.signal(sig, self._on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+
+    def restore(self) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+    @contextlib.contextmanager
+    def deferred(self) -> Iterator[None]:
+        """A signal in this block is raised at its end (not half way through starting a child)."""
+        self.may_raise = False
+        try:
+            yield
+        finally:
+            self.may_raise = True
+        if self.received is not None:
+            raise SitlStopped(self.received)
+
+    def _on_signal(self, signum: int, _frame: object) -> None:
+        name = signal.Signals(signum).name
+        if self.received is not None:
+            log.warning("%s received while stopping: ignored, the runtime and the vehicle are being stopped", name)
+            return
+        if not self.may_raise:
+            self.received = name
+            log.warning("%s received: stopping the runtime and the SITL vehicle", name)
+            return
+        self.received = name
+        log.warning("%s received: stopping the runtime (it commands Hold) and the SITL vehicle", name)
+        raise SitlStopped(name)
 
 
 @dataclass(frozen=True)
@@ -144,42 +203,54 @@ def _percent_stats(fractions: list[float]) -> dict[str, float]:
 
 def run_sitl(request: SitlRequest) -> dict:
     """Fly one episode and return the merged summary (see ``cmnav sitl --help``)."""
+    if (problem := directory_problem(request.out_dir)) is not None:
+        raise SitlError(f"--out {request.out_dir}: {problem}: pass a writable directory")
     if not request.model_path.is_file():
         raise SitlError(f"model file {request.model_path} not found: export one with `cmnav export goal-seeker -o PATH`")
+    try:  # the runtime's own load and first steps, before any process starts
+        check_outputs_finite(PolicyModel(request.model_path))
+    except (ModelLoadError, ContractMismatchError) as err:
+        raise SitlError(f"model refused, nothing started: {err}") from err
     run_dir = request.out_dir / f"level{request.level}_seed{request.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
-    run_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise SitlError(f"--out {request.out_dir}: cannot create {run_dir} ({err.strerror or err}): "
+                        "pass a writable directory") from err  # fmt: skip
+    if not os.access(run_dir, os.W_OK | os.X_OK):
+        raise SitlError(f"--out {request.out_dir}: {run_dir} is not writable by this user: pass a writable directory")
+    mavlink_port = free_port(socket.SOCK_DGRAM) if request.autopilot_url is None else request.offboard_port
+    camera_port = free_port(socket.SOCK_STREAM)
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    t_launch = time.monotonic()
+    signals = _StopSignals()
+    signals.install()
+    try:
+        return _run_processes(request, run_dir, mavlink_port, camera_port, env, signals, t_launch)
+    finally:
+        signals.restore()
+
+
+def _run_processes(
+    request: SitlRequest, run_dir: Path, mavlink_port: int, camera_port: int, env: dict, signals: _StopSignals,
+    t_launch: float,
+) -> dict:  # fmt: skip
     episode_path, trace_path, summary_path = run_dir / "episode.json", run_dir / "trace.json", run_dir / "runtime_summary.json"
     status_path = run_dir / "vehicle_status.json"
     sim_log, runtime_log = run_dir / "sim.log", run_dir / "runtime.log"
-    camera_port = free_port(socket.SOCK_STREAM)
-    world_files = ["--level", str(request.level), "--seed", str(request.seed), "--degrade", request.degrade,
-                   "--episode-json", str(episode_path), "--trace", str(trace_path), "--status-json", str(status_path)]  # fmt: skip
     if request.autopilot_url is None:
-        mavlink_port, world_name, ready_timeout_s = free_port(socket.SOCK_DGRAM), "the SITL vehicle", VEHICLE_READY_TIMEOUT_S
-        world_cmd = [sys.executable, "-m", "sim.sitl", "--mavlink-port", str(mavlink_port), "--camera-port", str(camera_port),
-                     *world_files, *request.injections_at(FaultSite.VEHICLE)]  # fmt: skip
-    else:
-        # The follower waits for the autopilot to be armable; its own error names what is missing.
-        mavlink_port, world_name, ready_timeout_s = request.offboard_port, "the world follower", VEHICLE_READY_TIMEOUT_S + 5.0
-        world_cmd = [sys.executable, "-m", "sim.follower", "--autopilot", request.autopilot_url,
-                     *(["--allow-remote"] if request.allow_remote else []), "--camera-port", str(camera_port), *world_files,
-                     "--timeout-s", str(request.timeout_s), "--ready-timeout-s", str(VEHICLE_READY_TIMEOUT_S)]  # fmt: skip
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-
-    t_launch = time.monotonic()
+        world_name, ready_timeout_s = "the SITL vehicle", VEHICLE_READY_TIMEOUT_S
+    else:  # the follower waits for the autopilot to be armable; its own error names what is missing
+        world_name, ready_timeout_s = "the world follower", VEHICLE_READY_TIMEOUT_S + 5.0
     t_kill_s = None
-    with open(sim_log, "w") as sim_out:
-        vehicle = subprocess.Popen(
-            world_cmd, stdout=sim_out, stderr=subprocess.STDOUT, env=env,
-            # In the child before exec: every thread the vehicle starts inherits the set.
-            preexec_fn=(lambda: os.sched_setaffinity(0, request.vehicle_cpus)) if request.vehicle_cpus else None,
-        )  # fmt: skip
-    runtime = None
+    vehicle = runtime = None
     try:
+        with signals.deferred():  # a child started is a child whose PID we hold
+            vehicle = _start_world(request, mavlink_port, camera_port, episode_path, trace_path, status_path, sim_log, env)
         episode = _wait_for_file(episode_path, vehicle, ready_timeout_s, world_name, sim_log)
         log.info("%s ready (pid %d): level %d seed %d, goal %s m from home", world_name,
                  vehicle.pid, request.level, request.seed, episode["goal_rel_home_enu_m"])  # fmt: skip
-        with open(runtime_log, "w") as runtime_out:
+        with open(runtime_log, "w") as runtime_out, signals.deferred():
             runtime = subprocess.Popen(
                 [sys.executable, "-m", "runtime.sitl_flight", "--mavlink-port", str(mavlink_port),
                  "--camera-port", str(camera_port), "--model", str(request.model_path),
@@ -187,17 +258,22 @@ def run_sitl(request: SitlRequest) -> dict:
                  "--takeoff-alt-m", f"{episode['takeoff_alt_m']:.3f}", "--timeout-s", str(request.timeout_s),
                  "--log-dir", str(run_dir), "--summary", str(summary_path), *request.injections_at(FaultSite.RUNTIME),
                  "--cpu-affinity", ",".join(map(str, request.runtime_cpus)), "--intra-op-threads", str(request.runtime_threads)],
-                stdout=runtime_out, stderr=subprocess.STDOUT, env=env,
+                stdout=runtime_out, stderr=subprocess.STDOUT, env=env, start_new_session=True,
             )  # fmt: skip
         log.info("runtime started (pid %d); flying", runtime.pid)
         t_kill_s = _wait_runtime(runtime, request, status_path)
         if request.injections and [mode for _, mode in _vehicle_mode_log(status_path)][-1:] != ["LAND"]:
             time.sleep(FAULT_OBSERVE_S)  # still flying: ground truth of the response, whatever the runtime did
+    except SitlStopped:
+        pass  # the children are stopped below, the runtime first; what it recorded makes the summary
     finally:
+        signals.may_raise = False
         if runtime is not None:
-            stop_process(runtime, "runtime")
-        stop_process(vehicle, world_name)
-
+            stop_process(runtime, "runtime")  # SIGTERM: hover, then Hold, summary written
+        if vehicle is not None:
+            stop_process(vehicle, world_name)
+    if signals.received is not None and runtime is None:
+        raise SitlError(f"stopped by {signals.received} before the flight started; nothing was armed")
     if not trace_path.exists():
         raise SitlError(f"{world_name} wrote no trace; its log ({sim_log}):\n{_tail(sim_log)}")
     if t_kill_s is not None:
@@ -206,11 +282,37 @@ def run_sitl(request: SitlRequest) -> dict:
         flight = {"outcome": "aborted", "abort_reason": "runtime_killed", "log": log_path and str(log_path), "watchdog_trips": []}
     elif summary_path.exists():
         flight = json.loads(summary_path.read_text())
+        if runtime is not None and runtime.returncode == 2:  # refused before the flight (sitl_flight's exit 2)
+            raise SitlError(f"the runtime could not run the episode: {flight.get('error')} (its log: {runtime_log})")
+        if signals.received is not None and flight.get("stop") is not None:
+            flight["abort_reason"] = f"stopped by {signals.received}"  # forwarded to the runtime as SIGTERM
     else:
         raise SitlError(f"the runtime wrote no summary (exit code {runtime.returncode if runtime else None}); "
                         f"its log ({runtime_log}):\n{_tail(runtime_log)}")  # fmt: skip
     trace = json.loads(trace_path.read_text())
     return merge_summary(request, episode, flight, trace, run_dir, time.monotonic() - t_launch, t_kill_s)
+
+
+def _start_world(
+    request: SitlRequest, mavlink_port: int, camera_port: int, episode_path: Path, trace_path: Path, status_path: Path,
+    sim_log: Path, env: dict,
+) -> subprocess.Popen:  # fmt: skip
+    """The camera world: our SITL vehicle, or the follower of the autopilot at ``request.autopilot_url``."""
+    world_files = ["--level", str(request.level), "--seed", str(request.seed), "--degrade", request.degrade,
+                   "--episode-json", str(episode_path), "--trace", str(trace_path), "--status-json", str(status_path)]  # fmt: skip
+    if request.autopilot_url is None:
+        command = [sys.executable, "-m", "sim.sitl", "--mavlink-port", str(mavlink_port), "--camera-port", str(camera_port),
+                   *world_files, *request.injections_at(FaultSite.VEHICLE)]  # fmt: skip
+    else:
+        command = [sys.executable, "-m", "sim.follower", "--autopilot", request.autopilot_url,
+                   *(["--allow-remote"] if request.allow_remote else []), "--camera-port", str(camera_port), *world_files,
+                   "--timeout-s", str(request.timeout_s), "--ready-timeout-s", str(VEHICLE_READY_TIMEOUT_S)]  # fmt: skip
+    with open(sim_log, "w") as sim_out:
+        return subprocess.Popen(
+            command, stdout=sim_out, stderr=subprocess.STDOUT, env=env, start_new_session=True,
+            # In the child before exec: every thread the vehicle starts inherits the set.
+            preexec_fn=(lambda: os.sched_setaffinity(0, request.vehicle_cpus)) if request.vehicle_cpus else None,
+        )  # fmt: skip
 
 
 def _wait_runtime(runtime: subprocess.Popen, request: SitlRequest, status_path: Path) -> float | None:
@@ -303,6 +405,9 @@ def merge_summary(
         "seed": request.seed,
         "model": str(request.model_path),
         "log": flight.get("log"),
+        "log_error": (flight.get("recorder") or {}).get("log_error"),
+        "log_records_dropped": (flight.get("recorder") or {}).get("dropped"),
+        "stop": flight.get("stop"),
         "plot": str(plot_path),
         "run_dir": str(run_dir),
     }
@@ -353,6 +458,13 @@ def run_sitl_cli(args: argparse.Namespace) -> int:
     try:
         injections = tuple(parse_injection(text) for text in args.inject)
     except InjectionError as err:
+        print(f"cmnav sitl: {err}", file=sys.stderr)
+        return 2
+    try:  # before any process starts: the children would refuse them with a traceback
+        check_level_seed(args.level, args.seed)
+        if not (math.isfinite(args.timeout) and args.timeout > 0.0):
+            raise ValueError(f"--timeout {args.timeout} must be a positive number of seconds")
+    except ValueError as err:
         print(f"cmnav sitl: {err}", file=sys.stderr)
         return 2
     request = SitlRequest(Path(args.model), args.level, args.seed, args.timeout, Path(args.out), injections, args.degrade)

@@ -27,6 +27,11 @@ class RealSenseUnavailableError(RuntimeError):
     """pyrealsense2 or the camera cannot be used; the message says what to install or plug in."""
 
 
+# D455 modes with both depth and color at 15 fps and (within 1 %) the contract's 848:480 aspect.
+D455_MODES = ((848, 480), (424, 240), (1280, 720), (640, 360), (480, 270))
+FRAME_TIMEOUT_MAX_MS = 5000  # a longer wait hides a dead camera from the start-up checks
+
+
 @dataclass(frozen=True)
 class RealSenseConfig:
     """D455 stream settings (the ``[camera.realsense]`` table of the runtime config)."""
@@ -41,14 +46,14 @@ class RealSenseConfig:
     def __post_init__(self) -> None:
         if self.fps != int(c.CAMERA_RATE_HZ):
             raise ValueError(f"camera.realsense.fps={self.fps!r} is invalid: must be {int(c.CAMERA_RATE_HZ)} (the policy runs at the camera rate)")
-        aspect = c.CAMERA_WIDTH_PX / c.CAMERA_HEIGHT_PX
-        if not (self.width_px > 0 and self.height_px > 0 and abs(self.width_px / self.height_px / aspect - 1.0) < 0.01):
+        if (self.width_px, self.height_px) not in D455_MODES:
+            modes = ", ".join(f"{w}x{h}" for w, h in D455_MODES)
             raise ValueError(
                 f"camera.realsense.width_px x height_px = {self.width_px}x{self.height_px} is invalid: must be a D455 "
-                f"mode with the contract's aspect {c.CAMERA_WIDTH_PX}:{c.CAMERA_HEIGHT_PX} (e.g. 848x480, 424x240)"
+                f"mode (depth and color at 15 fps) with the contract's aspect {c.CAMERA_WIDTH_PX}:{c.CAMERA_HEIGHT_PX}: {modes}"
             )
-        if self.frame_timeout_ms <= 0:
-            raise ValueError(f"camera.realsense.frame_timeout_ms={self.frame_timeout_ms!r} is invalid: must be > 0")
+        if not 0 < self.frame_timeout_ms <= FRAME_TIMEOUT_MAX_MS:
+            raise ValueError(f"camera.realsense.frame_timeout_ms={self.frame_timeout_ms!r} is invalid: must be in (0, {FRAME_TIMEOUT_MAX_MS}] ms")
 
 
 def import_pyrealsense2() -> Any:

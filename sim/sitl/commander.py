@@ -19,8 +19,10 @@ from pymavlink.dialects.v20 import common as mavlink
 from . import flight_tasks
 from .flight_tasks import VelocityCommand
 from .kinematics import Kinematics
-from .params import ParamTable
-from .px4 import HOLD, LAND, OFFBOARD, POSCTL, TAKEOFF, Px4Mode
+from .params import (
+    OBL_ACTIONS, OBL_ALTITUDE, OBL_DISARM, OBL_HOLD, OBL_LAND, OBL_MANUAL, OBL_POSITION, OBL_RETURN, OBL_TERMINATE, ParamTable,
+)  # fmt: skip
+from .px4 import ALTCTL, HOLD, LAND, MANUAL, OFFBOARD, POSCTL, RETURN, TAKEOFF, Px4Mode
 from .setpoints import STICK_TIMEOUT_S, OffboardSetpoint, Sticks
 
 log = logging.getLogger(__name__)
@@ -36,6 +38,14 @@ OFFBOARD_ENTRY_MAX_SETPOINT_AGE_S = 0.5
 TAKEOFF_ACCEPTANCE_M = 0.1
 # DO_SET_MODE can select these; PX4's manual modes need attitude sticks this vehicle does not fly.
 SELECTABLE_MODES = (HOLD, TAKEOFF, LAND, OFFBOARD, POSCTL)
+# Return mode: fly home at the current height, then land, once within this horizontal distance (m).
+RETURN_ACCEPTANCE_M = 0.3
+# The offboard-loss failsafe's mode per COM_OBL_RC_ACT (Terminate and Disarm stop the motors instead).
+_OBL_MODES = {OBL_POSITION: POSCTL, OBL_ALTITUDE: ALTCTL, OBL_MANUAL: MANUAL, OBL_RETURN: RETURN, OBL_LAND: LAND,
+              OBL_HOLD: HOLD}  # fmt: skip
+# Modes flown with RC sticks: without RC input PX4 cannot run them and its failsafe flight task
+# descends and lands where the vehicle is (the mode still reads as selected).
+_STICK_MODES = (POSCTL, ALTCTL, MANUAL)
 
 
 @dataclass(frozen=True)
@@ -81,6 +91,8 @@ class Commander:
         self._airborne_since_arm = False
         self._on_ground = kin.on_ground
         self._t_ground_s = t_s
+        # A stick mode engaged by the failsafe without RC input: descend and land where we are.
+        self._descend_without_rc = False
 
     # ---- state the telemetry reports ------------------------------------------------------
 
@@ -223,16 +235,39 @@ class Commander:
             self._target_enu_m = target
             self._brake = flight_tasks.Brake(target)
             self._event(t_s, mavlink.MAV_SEVERITY_INFO, "Takeoff complete, holding")
+        if self.mode == RETURN and self._returned_home(kin):
+            self._switch(t_s, LAND, kin)
         if self.mode == OFFBOARD and not self._setpoint_fresh(t_s, self._params["COM_OF_LOSS_T"]):
-            # PX4's default reaction is Position mode (COM_OBL_RC_ACT = 0); DESIGN asks for Hold,
-            # and Hold (AUTO.LOITER) is what this vehicle does.
-            self._switch(t_s, HOLD, kin)
-            self._event(t_s, mavlink.MAV_SEVERITY_WARNING, "Failsafe: offboard lost, Hold")
+            self._offboard_lost(t_s, kin)
+
+    def _offboard_lost(self, t_s: float, kin: Kinematics) -> None:
+        """PX4's offboard-loss failsafe: the action COM_OBL_RC_ACT selects.  Its default, Position
+        mode, needs RC sticks: without them PX4 descends and lands where it is, and so does this
+        vehicle — a runtime that leaves offboard by going silent is not saved by a kinder SITL."""
+        action = int(self._params["COM_OBL_RC_ACT"])
+        name = OBL_ACTIONS[action]
+        if action in (OBL_TERMINATE, OBL_DISARM):
+            self._event(t_s, mavlink.MAV_SEVERITY_CRITICAL, f"Failsafe activated: offboard lost, {name}")
+            self._disarm(t_s, f"Disarmed by failsafe ({name})")
+            return
+        mode = _OBL_MODES[action]
+        self._switch(t_s, mode, kin)
+        if mode == RETURN:
+            self._target_enu_m = np.array([self._home_enu_m[0], self._home_enu_m[1], kin.pos_enu_m[2]])
+        if mode in _STICK_MODES and not self._rc_present(t_s):
+            self._descend_without_rc = True
+            self._event(t_s, mavlink.MAV_SEVERITY_WARNING, f"Failsafe activated: offboard lost, {name} mode; no RC: landing")
+        else:
+            self._event(t_s, mavlink.MAV_SEVERITY_WARNING, f"Failsafe activated: offboard lost, {name} mode")
 
     def velocity_command(self, t_s: float, kin: Kinematics) -> VelocityCommand:
         """What the current mode asks of the velocity controller now."""
         if self.mode == OFFBOARD and self._setpoint is not None:
             return flight_tasks.follow_setpoint(kin, self._setpoint, self._target_yaw_enu_rad)
+        if self._descend_without_rc:
+            return flight_tasks.descend(kin, self._target_enu_m, self._target_yaw_enu_rad, self._params["MPC_LAND_SPEED"])
+        if self.mode == RETURN:
+            return flight_tasks.hold_position(kin, self._target_enu_m, self._target_yaw_enu_rad)
         if self.mode == TAKEOFF:
             return flight_tasks.climb_to(kin, self._target_enu_m, self._target_yaw_enu_rad, self._params["MPC_TKO_SPEED"])
         if self.mode == LAND:
@@ -247,10 +282,17 @@ class Commander:
 
     # ---- internals ------------------------------------------------------------------------
 
+    def _rc_present(self, t_s: float) -> bool:
+        return self._sticks is not None and t_s - self._sticks.t_rx_s <= STICK_TIMEOUT_S
+
+    def _returned_home(self, kin: Kinematics) -> bool:
+        return float(np.linalg.norm(kin.pos_enu_m[:2] - self._home_enu_m[:2])) < RETURN_ACCEPTANCE_M
+
     def _setpoint_fresh(self, t_s: float, max_age_s: float) -> bool:
         return self._setpoint is not None and t_s - self._setpoint.t_rx_s <= max_age_s
 
     def _switch(self, t_s: float, mode: Px4Mode, kin: Kinematics) -> None:
+        self._descend_without_rc = False
         self._brake = flight_tasks.Brake.engage(kin)
         self._target_enu_m = flight_tasks.stopping_point(kin)
         self._target_yaw_enu_rad = kin.yaw_enu_rad

@@ -24,6 +24,15 @@ class ParamError(ValueError):
     """Unknown parameter name or a value of the wrong type."""
 
 
+# COM_OBL_RC_ACT, PX4's offboard-loss failsafe action.  0-2 need RC sticks: a vehicle without RC
+# input cannot fly them, and PX4 then descends and lands where it is (its failsafe flight task).
+OBL_POSITION, OBL_ALTITUDE, OBL_MANUAL, OBL_RETURN, OBL_LAND, OBL_HOLD, OBL_TERMINATE, OBL_DISARM = range(8)
+OBL_ACTIONS = {OBL_POSITION: "Position", OBL_ALTITUDE: "Altitude", OBL_MANUAL: "Manual", OBL_RETURN: "Return",
+               OBL_LAND: "Land", OBL_HOLD: "Hold", OBL_TERMINATE: "Terminate", OBL_DISARM: "Disarm"}  # fmt: skip
+# Integer parameters with a closed set of values (PX4 rejects others too).
+_ALLOWED = {"COM_OBL_RC_ACT": OBL_ACTIONS}
+
+
 @dataclass
 class Param:
     name: str
@@ -35,6 +44,7 @@ def _defaults(takeoff_alt_m: float) -> list[Param]:
     return [
         Param("COM_DISARM_LAND", 2.0, REAL32),  # s landed before auto-disarm
         Param("COM_DISARM_PRFLT", 10.0, REAL32),  # s armed without take-off before auto-disarm
+        Param("COM_OBL_RC_ACT", OBL_POSITION, INT32),  # offboard-loss failsafe action (OBL_ACTIONS)
         Param("COM_OF_LOSS_T", 1.0, REAL32),  # s without offboard setpoints before the failsafe
         Param("MIS_TAKEOFF_ALT", float(takeoff_alt_m), REAL32),  # m above home
         Param("MPC_LAND_SPEED", 0.7, REAL32),  # m/s
@@ -78,7 +88,10 @@ class ParamTable:
         if param_type != param.param_type:
             raise ParamError(f"{name} has MAV_PARAM_TYPE {param.param_type}, PARAM_SET sent {param_type}")
         if param.param_type == INT32:
-            param.value = struct.unpack("<i", struct.pack("<f", wire_value))[0]
+            value = struct.unpack("<i", struct.pack("<f", wire_value))[0]
+            if name in _ALLOWED and value not in _ALLOWED[name]:
+                raise ParamError(f"{name}={value} is not one of {sorted(_ALLOWED[name])}")
+            param.value = value
         else:
             if not math.isfinite(wire_value):
                 raise ParamError(f"{name}={wire_value} is not finite")

@@ -25,6 +25,7 @@ from runtime.camera.frame import Frame
 from runtime.faults import Injection
 from sim.camera import CameraModel
 from sim.degradation import ProjectorOffModel
+from sim.episode_args import check_level_seed
 from sim.world import make_worlds
 
 from .airframe import Airframe
@@ -85,8 +86,7 @@ class SitlConfig:
             raise ValueError(f"--degrade {self.degrade!r} must be one of {sorted(DEGRADATIONS)}")
         if not -360.0 <= self.heading_deg <= 360.0:
             raise ValueError(f"--heading-deg {self.heading_deg} must be in [-360, 360]")
-        if self.level < 0:
-            raise ValueError(f"--level {self.level} must be >= 0")
+        check_level_seed(self.level, self.seed)
         if not 10.0 <= self.physics_hz <= 1000.0:
             raise ValueError(f"--physics-hz {self.physics_hz} must be in [10, 1000]")
         if not 0.0 < self.camera_hz <= 60.0:

@@ -10,132 +10,18 @@
 
 from __future__ import annotations
 
-import json
-import os
-import select
 import socket
-import subprocess
-import sys
-import threading
-import time
 from pathlib import Path
 
 import pytest
-from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
 from export.goal_seeker import export_goal_seeker
 from runtime.replay import replay_log
-from sim.sitl_session import free_port, stop_process
+from sim.sitl_session import free_port
+from tests.e2e.fly_helpers import READY_TIMEOUT_S, MavlinkRouter, NotifyListener, Pilot, Sitl, finish_fly, fly_config, start_fly
 
 pytestmark = pytest.mark.timeout(180)
-
-ROOT = Path(__file__).resolve().parents[2]
-LOOPBACK = "127.0.0.1"
-READY_TIMEOUT_S = 60.0
-FLY_TIMEOUT_S = 120.0
-PX4_MAIN_MODE_AUTO, PX4_SUB_MODE_LOITER = 4, 3  # Hold
-
-
-
-
-class NotifyListener:
-    """Collects sd_notify datagrams on a unix socket, as systemd would receive them."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = str(path)
-        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        self._sock.bind(self.path)
-        self._sock.settimeout(0.1)
-        self.messages: list[str] = []
-        self.ready = threading.Event()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                message = self._sock.recv(4096).decode()
-            except socket.timeout:
-                continue
-            self.messages.append(message)
-            if message.startswith("READY=1"):
-                self.ready.set()
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join()
-        self._sock.close()
-
-
-class MavlinkRouter:
-    """vehicle <-> runtime and pilot, like mavlink-router: every datagram from the vehicle goes to
-    both; what either sends goes to the vehicle."""
-
-    def __init__(self, runtime_port: int, pilot_port: int) -> None:
-        def bound() -> socket.socket:
-            sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            sock.bind((LOOPBACK, 0))
-            return sock
-
-        self._vehicle_side, self._runtime_side, self._pilot_side = bound(), bound(), bound()
-        self.port = self._vehicle_side.getsockname()[1]  # the SITL vehicle's --mavlink-port
-        self._outputs = [(self._runtime_side, (LOOPBACK, runtime_port)), (self._pilot_side, (LOOPBACK, pilot_port))]
-        self._vehicle_addr: tuple | None = None
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        sockets = [self._vehicle_side, self._runtime_side, self._pilot_side]
-        while not self._stop.is_set():
-            readable, _, _ = select.select(sockets, [], [], 0.05)
-            for sock in readable:
-                try:
-                    data, addr = sock.recvfrom(65535)
-                except ConnectionRefusedError:
-                    continue  # ICMP from a send to a port nobody listens on yet
-                try:
-                    if sock is self._vehicle_side:
-                        self._vehicle_addr = addr
-                        for out, dest in self._outputs:
-                            out.sendto(data, dest)
-                    elif self._vehicle_addr is not None:
-                        self._vehicle_side.sendto(data, self._vehicle_addr)
-                except OSError:
-                    pass  # a listener not up yet: MAVLink over UDP loses such datagrams too
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join()
-        for sock in (self._vehicle_side, self._runtime_side, self._pilot_side):
-            sock.close()
-
-
-class Sitl:
-    """``python -m sim.sitl`` on free ports, stopped by PID."""
-
-    def __init__(self, tmp: Path, mavlink_port: int, level: int = 0, seed: int = 2) -> None:
-        self.camera_port = free_port(socket.SOCK_STREAM)
-        self.log_path = tmp / "sitl.log"
-        episode_path = tmp / "episode.json"
-        with open(self.log_path, "w") as log_file:
-            self.proc = subprocess.Popen(
-                [sys.executable, "-m", "sim.sitl", "--mavlink-port", str(mavlink_port), "--camera-port", str(self.camera_port),
-                 "--level", str(level), "--seed", str(seed), "--episode-json", str(episode_path),
-                 "--trace", str(tmp / "trace.json")],
-                stdout=log_file, stderr=subprocess.STDOUT, cwd=ROOT,
-            )  # fmt: skip
-        deadline = time.monotonic() + READY_TIMEOUT_S
-        while not episode_path.exists():
-            assert self.proc.poll() is None, f"SITL vehicle exited:\n{self.log_path.read_text()[-3000:]}"
-            assert time.monotonic() < deadline, "SITL vehicle not ready"
-            time.sleep(0.05)
-        self.episode = json.loads(episode_path.read_text())
-
-    def stop(self) -> None:
-        stop_process(self.proc, "SITL vehicle", 10.0)
 
 
 @pytest.fixture(scope="module")
@@ -143,47 +29,6 @@ def goal_seeker(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("models") / "goal-seeker.onnx"
     export_goal_seeker(str(path))
     return path
-
-
-def _config(model: Path, runtime_port: int, camera_port: int, goal: list[float], log_dir: Path, mission: str) -> str:
-    return f"""
-[vehicle]
-url = "udpin://127.0.0.1:{runtime_port}"
-[camera]
-source = "sim"
-[camera.sim]
-port = {camera_port}
-[policy]
-model_path = "{model}"
-providers = ["CPUExecutionProvider"]
-[mission]
-goal_rel_home_enu_m = [{goal[0]:.3f}, {goal[1]:.3f}, {goal[2]:.3f}]
-episode_timeout_s = 30.0
-{mission}
-[recorder]
-log_dir = "{log_dir}"
-"""
-
-
-def _start_fly(tmp_path: Path, config: str, notify: NotifyListener) -> subprocess.Popen:
-    path = tmp_path / "cmnav.toml"
-    path.write_text(config)
-    env = dict(os.environ, NOTIFY_SOCKET=notify.path, WATCHDOG_USEC="2000000", PYTHONUNBUFFERED="1")
-    with open(tmp_path / "fly.log", "w") as log_file:
-        return subprocess.Popen([sys.executable, "-m", "cmnav", "fly", "--config", str(path), "--json"], cwd=ROOT,
-                                env=env, stdout=subprocess.PIPE, stderr=log_file, text=True)  # fmt: skip
-
-
-def _finish(proc: subprocess.Popen, tmp_path: Path) -> tuple[int, dict]:
-    try:
-        stdout, _ = proc.communicate(timeout=FLY_TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        stdout, _ = proc.communicate()
-    lines = stdout.strip().splitlines()
-    summary = json.loads(lines[-1]) if lines and lines[-1].startswith("{") else {}
-    assert summary, f"no summary; runtime log:\n{(tmp_path / 'fly.log').read_text()[-4000:]}"
-    return proc.returncode, summary
 
 
 def _near_goal(sitl: Sitl) -> list[float]:
@@ -198,8 +43,8 @@ def test_dry_run_flies_to_the_goal_notifies_systemd_and_replays(goal_seeker, tmp
     notify = NotifyListener(tmp_path / "notify")
     try:
         mission = f"allow_arm_takeoff = true\ntakeoff_alt_m = {sitl.episode['takeoff_alt_m']:.3f}\nmax_episodes = 1"
-        config = _config(goal_seeker, runtime_port, sitl.camera_port, _near_goal(sitl), tmp_path / "logs", mission)
-        code, summary = _finish(_start_fly(tmp_path, config, notify), tmp_path)
+        config = fly_config(goal_seeker, runtime_port, sitl.camera_port, _near_goal(sitl), tmp_path / "logs", mission)
+        code, summary = finish_fly(start_fly(tmp_path, config, notify), tmp_path)
     finally:
         sitl.stop()
         notify.close()
@@ -221,54 +66,6 @@ def test_dry_run_flies_to_the_goal_notifies_systemd_and_replays(goal_seeker, tmp
     assert report.max_abs_diff <= 1e-5
 
 
-class Pilot:
-    """A ground station / RC pilot over pymavlink: arms, takes off, selects offboard."""
-
-    def __init__(self, port: int) -> None:
-        self.link = mavutil.mavlink_connection(f"udpin:{LOOPBACK}:{port}", source_system=255, source_component=190)
-        self.heartbeat = None
-        self.height_m = 0.0
-
-    def _recv(self, timeout_s: float):
-        msg = self.link.recv_match(blocking=True, timeout=timeout_s)
-        if msg is not None and msg.get_srcSystem() == 1:
-            if msg.get_type() == "HEARTBEAT" and msg.get_srcComponent() == 1:
-                self.heartbeat = msg
-            elif msg.get_type() == "LOCAL_POSITION_NED":
-                self.height_m = -msg.z
-        return msg
-
-    def wait(self, predicate, timeout_s: float, what: str) -> None:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            self._recv(0.05)
-            if predicate():
-                return
-        raise AssertionError(f"{what} not seen within {timeout_s} s")
-
-    def command_until_accepted(self, command: int, params: list[float], timeout_s: float, what: str) -> None:
-        """COMMAND_LONG, repeated until the vehicle ACKs it as accepted (e.g. arming waits for health)."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            self.link.mav.command_long_send(1, 1, command, 0, *(params + [0.0] * (7 - len(params))))
-            ack_deadline = time.monotonic() + 0.5
-            while time.monotonic() < ack_deadline:
-                msg = self._recv(0.05)
-                if msg is not None and msg.get_type() == "COMMAND_ACK" and msg.command == command:
-                    if msg.result == mavlink.MAV_RESULT_ACCEPTED:
-                        return
-                    break
-            time.sleep(0.2)
-        raise AssertionError(f"{what} not accepted within {timeout_s} s")
-
-    def in_hold(self) -> bool:
-        mode = self.heartbeat.custom_mode if self.heartbeat else 0
-        return (mode >> 16) & 0xFF == PX4_MAIN_MODE_AUTO and (mode >> 24) & 0xFF == PX4_SUB_MODE_LOITER
-
-    def close(self) -> None:
-        self.link.close()
-
-
 def test_pilot_mode_waits_for_the_pilot_then_flies(goal_seeker, tmp_path):
     runtime_port, pilot_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
     router = MavlinkRouter(runtime_port, pilot_port)
@@ -277,8 +74,8 @@ def test_pilot_mode_waits_for_the_pilot_then_flies(goal_seeker, tmp_path):
     pilot = Pilot(pilot_port)
     proc = None
     try:
-        config = _config(goal_seeker, runtime_port, sitl.camera_port, _near_goal(sitl), tmp_path / "logs", "max_episodes = 1")
-        proc = _start_fly(tmp_path, config, notify)
+        config = fly_config(goal_seeker, runtime_port, sitl.camera_port, _near_goal(sitl), tmp_path / "logs", "max_episodes = 1")
+        proc = start_fly(tmp_path, config, notify)
         assert notify.ready.wait(READY_TIMEOUT_S), f"no READY:\n{(tmp_path / 'fly.log').read_text()[-3000:]}"
         pilot.wait(lambda: pilot.heartbeat is not None, 10.0, "vehicle heartbeat")
         assert not pilot.heartbeat.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED  # the runtime did not arm
@@ -291,7 +88,7 @@ def test_pilot_mode_waits_for_the_pilot_then_flies(goal_seeker, tmp_path):
         # Accepted only because the runtime streams setpoints while it waits (PX4's rule).
         pilot.command_until_accepted(mavlink.MAV_CMD_DO_SET_MODE, [mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 6.0, 0.0],
                                      5.0, "switch to offboard")  # fmt: skip
-        code, summary = _finish(proc, tmp_path)
+        code, summary = finish_fly(proc, tmp_path)
         pilot.wait(pilot.in_hold, 10.0, "Hold after the episode")
     finally:
         if proc is not None and proc.poll() is None:

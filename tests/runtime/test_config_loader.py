@@ -31,20 +31,25 @@ def _minimal(model: Path, extra: str = "", mission: str = "") -> str:
     return f'[policy]\nmodel_path = "{model}"\n{extra}\n[mission]\ngoal_rel_home_enu_m = [5.0, 0.0, 1.5]\n{mission}\n'
 
 
-def _field_example(model: Path) -> str:
-    """examples/cmnav.toml with its model path pointed at a real model."""
+def _field_example(model: Path, log_dir: Path | None = None) -> str:
+    """examples/cmnav.toml with its model path pointed at a real model (and its log directory,
+    /var/log/cmnav on the Jetson, at ``log_dir``: the loader checks it is writable)."""
     text = (EXAMPLES / "cmnav.toml").read_text()
     text, n = re.subn(r'^model_path = ".*"', f'model_path = "{model}"', text, flags=re.M)
     assert n == 1
+    if log_dir is not None:
+        text, n = re.subn(r'^log_dir = ".*"', f'log_dir = "{log_dir}"', text, flags=re.M)
+        assert n == 1
     return text
 
 
 def test_field_example_loads(model, tmp_path):
-    config = load_config(_write(tmp_path, _field_example(model)))
+    assert 'log_dir = "/var/log/cmnav"' in (EXAMPLES / "cmnav.toml").read_text()
+    config = load_config(_write(tmp_path, _field_example(model, tmp_path / "logs")))
     assert config.policy.model_path == model
     assert config.policy.providers == ("CUDAExecutionProvider", "CPUExecutionProvider")
     assert config.policy.limits.max_speed_m_s == 1.0 and config.mission.allow_arm_takeoff is False
-    assert config.recorder.log_dir == Path("/var/log/cmnav") and config.camera.source == "realsense"
+    assert config.recorder.log_dir == tmp_path / "logs" and config.camera.source == "realsense"
     assert config.vehicle.url == "udpin://0.0.0.0:14540"
 
 
@@ -161,3 +166,59 @@ def test_missing_goal_is_named(model, tmp_path):
 def test_unreadable_file_is_named(tmp_path):
     with pytest.raises(ConfigError, match="cannot read config file .*nope.toml"):
         load_config(tmp_path / "nope.toml")
+
+
+# A hostile newcomer's configs (issue 13): values that would switch a safety check off, crash the
+# checker or hang it are refused with one line naming the file and the key.
+HOSTILE = {
+    "watchdog period of an hour": ("[watchdog]\nperiod_s = 3600\n", r"watchdog\.period_s=3600\.0 is invalid: must be in \[0\.001, 0\.0666667\] s"),
+    "frames stale for ever": ("[watchdog]\nframe_stale_ms = 1e9\n", r"watchdog\.frame_stale_ms=1000000000\.0 is invalid: must be in \[66\.6667, 1000\] ms"),
+    "hover for ever": ("[watchdog]\nhold_grace_s = 1e6\n", r"watchdog\.hold_grace_s=1000000\.0 is invalid: must be in \[0, 5\] s"),
+    "threads beyond int32": ("[policy]\nintra_op_threads = 2147483648\n", r"policy\.intra_op_threads=2147483648 is invalid: must be an integer in \[0, \d+\]"),
+    "ten thousand threads": ("[policy]\nintra_op_threads = 10000\n", r"policy\.intra_op_threads=10000 is invalid"),
+    "camera size no D455 has": ("[camera.realsense]\nwidth_px = 8480\nheight_px = 4800\n", r"camera\.realsense\.width_px x height_px = 8480x4800 is invalid: must be a D455 mode"),
+    "url without host": ('[vehicle]\nurl = "udpin://:14540"\n', r"vehicle\.url='udpin://:14540' is invalid: .*no HOST:PORT"),
+    "url with a bad port": ('[vehicle]\nurl = "udpout://127.0.0.1:99999"\n', r"vehicle\.url=.* port '99999' is not in 1\.\.65535"),
+    "url with a bad host": ('[vehicle]\nurl = "tcpout://bad host!:5760"\n', r"vehicle\.url=.* host 'bad host!' is neither"),
+    "serial url without device": ('[vehicle]\nurl = "serial://ttyTHS1:921600"\n', r"vehicle\.url=.* serial device 'ttyTHS1' is not a /dev path"),
+    "command timeout of a day": ("[vehicle]\ncommand_timeout_s = 86400\n", r"vehicle\.command_timeout_s=86400\.0 is invalid: must be in \[0, 10\] s"),
+    "log dir under /proc": ('[recorder]\nlog_dir = "/proc/cmnav-logs"\n', r"recorder\.log_dir = '/proc/cmnav-logs': cannot create anything in /proc"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", list(HOSTILE))
+def test_hostile_values_are_refused_naming_file_and_key(case, model, tmp_path):
+    table, message = HOSTILE[case]
+    section = table.split("]", 1)[0] + "]"
+    text = _minimal(model) if section == "[policy]" else _minimal(model) + "\n" + table
+    if section == "[policy]":  # one [policy] table: add the key to it
+        text = text.replace("[policy]\n", table)
+    path = _write(tmp_path, text)
+    with pytest.raises(ConfigError, match=message) as info:
+        load_config(path)
+    assert str(info.value).startswith(f"{path}: ") and "\n" not in str(info.value)
+
+
+def test_log_dir_that_is_a_file_is_refused(model, tmp_path):
+    blocker = tmp_path / "not-a-dir"
+    blocker.write_text("")
+    with pytest.raises(ConfigError, match=r"recorder\.log_dir = .*not-a-dir' is a file, not a directory|not-a-dir is a file, not a directory"):
+        load_config(_write(tmp_path, _minimal(model) + f'\n[recorder]\nlog_dir = "{blocker}"\n'))
+
+
+def test_deeply_nested_and_huge_files_are_refused_with_a_line(model, tmp_path):
+    deep = _write(tmp_path, "x = " + "[" * 2000 + "]" * 2000 + "\n")
+    with pytest.raises(ConfigError, match=r"nests .*too deeply|nests \d+ levels") as info:
+        load_config(deep)
+    assert str(info.value).startswith(str(deep))
+    huge = tmp_path / "huge.toml"
+    huge.write_text(_minimal(model) + '[vehicle]\nurl = "udpin://' + "a" * 5_000_000 + '"\n')
+    with pytest.raises(ConfigError, match=r"huge\.toml is \d+ bytes: a config is at most 65536 bytes"):
+        load_config(huge)
+
+
+def test_invalid_utf8_names_the_file(tmp_path):
+    path = tmp_path / "latin1.toml"
+    path.write_bytes(b'[vehicle]\nurl = "udpin://caf\xe9:1"\n')
+    with pytest.raises(ConfigError, match=r"latin1\.toml is not UTF-8 text \(byte 28"):
+        load_config(path)

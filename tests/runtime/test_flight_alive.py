@@ -56,7 +56,7 @@ async def _fly(model, during, config: RuntimeConfig, timeout_s: float, stalled: 
 
 def test_a_stalled_step_stops_the_pings(tmp_path):
     model = StallingModel(PolicyModel(save(step_model(), tmp_path / "m.onnx")))
-    config = RuntimeConfig(watchdog=WatchdogConfig(step_trip_ms=5000.0, hold_grace_s=0.2))
+    config = RuntimeConfig(watchdog=WatchdogConfig(step_trip_ms=1000.0, hold_grace_s=0.2))  # the longest allowed
 
     async def stall_then_release(model, alive):
         while not model.stalled.is_set():

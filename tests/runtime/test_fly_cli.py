@@ -26,7 +26,8 @@ ROOT = Path(__file__).resolve().parents[2]
 @pytest.fixture(scope="module")
 def models(tmp_path_factory) -> dict[str, Path]:
     tmp = tmp_path_factory.mktemp("models")
-    return {"good": save(step_model(), tmp / "good.onnx"), "old": save(step_model(metadata={}), tmp / "old.onnx")}
+    return {"good": save(step_model(), tmp / "good.onnx"), "old": save(step_model(metadata={}), tmp / "old.onnx"),
+            "nan": save(step_model(action_offset=float("nan")), tmp / "nan.onnx")}
 
 
 @pytest.fixture
@@ -83,6 +84,7 @@ BAD = {
     "bad sha256": ('model_sha256 = "' + "ab" * 32 + '"', "", "good", "policy.model_sha256 = '" + "ab" * 32 + "' but"),
     "missing model": ("", "", "missing", "policy.model_path = "),
     "model without contract": ("", "", "old", "model refused, nothing armed"),
+    "model that outputs NaN": ("", "", "nan", "outputs NaN/Inf (action) on all-zero inputs"),
 }  # fmt: skip
 
 
@@ -124,6 +126,7 @@ def test_check_validates_the_field_example_without_a_vehicle(models, tmp_path, c
     example = (ROOT / "examples" / "cmnav.toml").read_text()
     example = re.sub(r'^model_path = ".*"', f'model_path = "{models["good"]}"', example, flags=re.M)
     example = re.sub(r"^providers = .*", 'providers = ["CPUExecutionProvider"]', example, flags=re.M)
+    example = re.sub(r'^log_dir = ".*"', f'log_dir = "{tmp_path / "logs"}"', example, flags=re.M)  # /var/log/cmnav is the Jetson's
     code, out = _check(tmp_path, example, capsys)
     assert code == 0 and "config valid" in out and str(models["good"]) in out
 
@@ -137,3 +140,20 @@ def test_unavailable_provider_refuses_or_falls_back_per_config(models, tmp_path,
     code, out = _check(tmp_path, _config(models["good"], 9, policy=providers + "\nprovider_fallback = true"), capsys)
     assert code == 0 and "loads on ['CPUExecutionProvider']" in out
     assert "falling back to ['CPUExecutionProvider']" in caplog.text
+
+
+def test_check_refuses_a_model_that_outputs_nan(models, tmp_path, capsys, caplog):
+    code, out = _check(tmp_path, _config(models["nan"], 9), capsys)
+    assert code == 2 and "config valid" not in out
+    assert "model refused, nothing armed" in caplog.text and "outputs NaN/Inf (action) on all-zero inputs" in caplog.text
+
+
+def test_json_error_object_for_a_file_that_is_not_utf8(tmp_path, mavlink_sniffer, notify_socket):
+    path = tmp_path / "cmnav.toml"
+    path.write_bytes(b"[vehicle]\nurl = \"udpin://caf\xe9:1\"\n")
+    env = dict(os.environ, NOTIFY_SOCKET=notify_socket.getsockname())
+    proc = subprocess.run([sys.executable, "-m", "cmnav", "fly", "--config", str(path), "--json"], capture_output=True,
+                          text=True, timeout=60, cwd=ROOT, env=env)  # fmt: skip
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    error = json.loads(proc.stdout.strip().splitlines()[-1])["error"]
+    assert error.startswith(f"config: {path} is not UTF-8 text"), error

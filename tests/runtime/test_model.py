@@ -7,7 +7,7 @@ from onnx import TensorProto
 from runtime.contract import ContractMismatchError, contract_metadata
 from runtime.contract import constants as c
 from runtime.contract.metadata import METADATA_KEY_VALUES, METADATA_KEY_VERSION
-from runtime.model import ModelLoadError, PolicyModel, ProviderUnavailableError
+from runtime.model import ModelLoadError, PolicyModel, ProviderUnavailableError, check_outputs_finite
 from tests.runtime.onnx_models import default_inputs, default_outputs, save, step_model
 
 
@@ -103,3 +103,23 @@ def test_mismatched_contract_named(tmp_path):
     path = save(step_model(metadata=meta), tmp_path / "m.onnx")
     with pytest.raises(ContractMismatchError, match="contract version '0'.*max_speed_m_s: .* has 3.0, runtime has 2.0"):
         PolicyModel(path)
+
+
+def test_good_model_passes_the_output_check(tmp_path):
+    check_outputs_finite(PolicyModel(save(step_model(), tmp_path / "good.onnx")))
+
+
+def test_nan_model_is_refused_before_it_flies(tmp_path):
+    model = PolicyModel(save(step_model(action_offset=float("nan")), tmp_path / "nan.onnx"))
+    with pytest.raises(ModelLoadError, match=r"outputs NaN/Inf \(action\) on all-zero inputs"):
+        check_outputs_finite(model)
+
+
+def test_unknown_opset_is_refused_on_one_line(tmp_path):
+    model = step_model()
+    model.opset_import[0].version = 99  # ONNX Runtime's refusal spans several lines
+    path = tmp_path / "opset99.onnx"
+    path.write_bytes(model.SerializeToString())
+    with pytest.raises(ModelLoadError, match="not a loadable ONNX model") as info:
+        PolicyModel(path)
+    assert "\n" not in str(info.value)

@@ -166,3 +166,81 @@ def test_sigkilled_writer_loses_at_most_about_a_second(tmp_path):
     # Flushed every 0.5 s: at most ~1 s (15 frames) lost, with slack for a loaded machine.
     del seqs[TOPIC_WATCHDOG]
     assert min(seqs.values()) >= last_logged - 23, seqs
+
+
+class FailingWriter:
+    """Stands in for foxglove's MCAP writer after the disk filled: every write method raises the
+    RuntimeError foxglove raises (the recorder's own code path is unchanged around it)."""
+
+    ERROR = "FoxgloveError: MCAP error: I/O error from writing, or reading a compression stream"
+
+    def __init__(self, real) -> None:
+        self._real = real
+
+    def write_metadata(self, *args, **kwargs):
+        raise RuntimeError(self.ERROR)
+
+    def flush(self):
+        raise RuntimeError(self.ERROR)
+
+    def close(self):
+        self._real.close()  # release the real file
+        raise RuntimeError("FoxgloveError: MCAP error: attempted another write after a write method failed")
+
+
+def test_a_write_failure_is_logged_once_counted_and_never_raises(tmp_path, caplog):
+    rec = Recorder(tmp_path / "log.mcap", RecorderConfig(flush_period_s=0.05))
+    rec._writer = FailingWriter(rec._writer)  # the disk fills after the log opened
+    for seq in range(1, 40):
+        _log_one_step(rec, seq, time.monotonic_ns())
+        time.sleep(0.005)
+    rec.close()  # must not raise, although the writer's close does
+    rec.close()
+    assert rec.stats.log_error is not None and "I/O error" in rec.stats.log_error
+    assert rec.stats.dropped > 0
+    assert sum("flight log: writing" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_a_failure_to_write_the_first_record_refuses_at_open(tmp_path, monkeypatch):
+    import foxglove
+
+    real_open = foxglove.open_mcap
+    monkeypatch.setattr(foxglove, "open_mcap", lambda *a, **k: FailingWriter(real_open(*a, **k)))
+    with pytest.raises(RecorderError, match="cannot create flight log .* has free space"):
+        Recorder(tmp_path / "log.mcap")
+
+
+@pytest.fixture
+def full_tmpfs(tmp_path):
+    """A 1 MiB tmpfs, filled, where this user may mount one (root in a container); else skip."""
+    mount_point = tmp_path / "tmpfs"
+    mount_point.mkdir()
+    proc = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mount_point)], capture_output=True, text=True)
+    if proc.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here ({proc.stderr.strip() or proc.returncode}); the injected failures above cover the path")
+    try:
+        with open(mount_point / "filler", "wb") as f:
+            try:
+                while True:
+                    f.write(b"\0" * 65536)
+                    f.flush()
+            except OSError:
+                pass  # ENOSPC: full
+        yield mount_point
+    finally:
+        subprocess.run(["umount", str(mount_point)], check=True)
+
+
+def test_a_really_full_disk_refuses_at_open(full_tmpfs):
+    with pytest.raises(RecorderError, match="cannot create flight log"):
+        Recorder(full_tmpfs / "log.mcap")
+
+
+def test_a_disk_that_fills_while_recording_costs_records_only(full_tmpfs):
+    (full_tmpfs / "filler").write_bytes(b"\0" * (1024 * 1024 - 200_000))  # leave ~200 kB free
+    rec = Recorder(full_tmpfs / "log.mcap", RecorderConfig(flush_period_s=0.05))
+    for seq in range(1, 60):
+        _log_one_step(rec, seq, time.monotonic_ns())
+        time.sleep(0.01)
+    rec.close()
+    assert rec.stats.log_error is not None and rec.stats.dropped > 0 and rec.stats.written > 0

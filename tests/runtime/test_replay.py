@@ -102,6 +102,13 @@ def test_another_model_shows_differences(flown, tmp_path):
     assert json.loads(json.dumps(report.to_json()))["same_model"] is False
 
 
+def test_a_nan_model_is_refused_not_reported_as_an_infinite_difference(flown, tmp_path):
+    _, log_path, _ = flown
+    nan_model = save(recurrent_step_model(action_offset=float("nan")), tmp_path / "nan.onnx")
+    with pytest.raises(ReplayError, match=r"cannot replay .* outputs NaN/Inf \(action\)"):
+        replay_log(log_path, nan_model)
+
+
 def test_hidden_state_must_follow_the_resets(flown, monkeypatch):
     """Replaying without the flight's GRU resets would not match: the check has teeth."""
     _, log_path, _ = flown

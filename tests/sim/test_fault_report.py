@@ -45,11 +45,14 @@ def test_a_fault_that_never_came_is_marked():
 def test_runtime_kill_is_the_vehicles_failsafe():
     trace = _trace(lambda t: 1.2 if t < 103.4 else 0.1, [[103.05, "HOLD"]])
     (record,) = fault_records((Injection(FaultKind.RUNTIME_KILL, 2.0),), trace, {}, 102.0)
-    assert record["cause"] == "offboard_loss_failsafe" and record["response"] == "vehicle_hold"
+    assert record["cause"] == "offboard_loss_failsafe" and record["response"] == "vehicle_failsafe"
     assert record["detect_ms"] == pytest.approx(1050.0) and record["hold_entered_s"] == pytest.approx(1.05)
     assert record["stopped_within_s"] == pytest.approx(1.4) and record["stopped_after_trip_s"] == pytest.approx(0.35)
     trip, t_hold = vehicle_failsafe_trip([(90.0, "HOLD"), (100.0, "OFFBOARD")], 102.0)
     assert trip is None and t_hold is None
+    # PX4's default failsafe (COM_OBL_RC_ACT = 0): Position mode, which lands a vehicle without RC.
+    trip, t_failsafe = vehicle_failsafe_trip([(100.0, "OFFBOARD"), (103.1, "POSCTL")], 102.0)
+    assert trip["mode"] == "POSCTL" and trip["hold_t_s"] is None and t_failsafe == 103.1
 
 
 def test_still_moving_at_the_end_never_stopped():

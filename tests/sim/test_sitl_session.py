@@ -121,3 +121,17 @@ def test_a_crash_takes_its_time_from_ground_truth_with_the_runtimes_detection_de
     unnoticed = dict(FLIGHT, outcome="timeout", time_s=15.0, t_episode_start_s=5.0)
     summary = merge_summary(_request(tmp_path), EPISODE, unnoticed, _trace(collision), tmp_path, 30.0)
     assert summary["time_s"] == pytest.approx(4.0) and summary["crash_detect_ms"] is None
+
+
+def test_a_nan_model_is_refused_before_any_process_starts(tmp_path, capsys):
+    from tests.runtime.onnx_models import save, step_model
+
+    model = save(step_model(action_offset=float("nan")), tmp_path / "nan.onnx")
+    out = tmp_path / "runs"
+    args = argparse.Namespace(model=str(model), level=0, seed=0, timeout=10.0, out=str(out), json=False, inject=[],
+                              degrade="none")  # fmt: skip
+    assert run_sitl_cli(args) == 2
+    err = capsys.readouterr().err
+    assert "model refused, nothing started" in err and "outputs NaN/Inf (action)" in err
+    assert len(err.strip().splitlines()) == 1
+    assert not out.exists()  # no run directory: neither the vehicle nor the runtime was started

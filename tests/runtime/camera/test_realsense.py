@@ -181,7 +181,11 @@ def test_no_device_says_what_to_plug_in():
 
 
 def test_real_pyrealsense2_without_a_device():
-    pytest.importorskip("pyrealsense2", reason="pyrealsense2 (cmnav[realsense]) and libusb not installed")
+    try:
+        import pyrealsense2  # noqa: F401
+    except ImportError as err:  # not installed, or installed without the libusb-1.0 it loads at import
+        pytest.skip(f"pyrealsense2 cannot be imported here ({err}): it needs `pip install 'cmnav[realsense]'` and the "
+                    "libusb-1.0 system library (apt-get install libusb-1.0-0), through which it talks to the D455 over USB")  # fmt: skip
     with pytest.raises(RealSenseUnavailableError, match="no RealSense device found"):
         asyncio.run(RealSenseSource().start())
 

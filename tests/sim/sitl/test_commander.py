@@ -9,8 +9,8 @@ from pymavlink.dialects.v20 import common as mavlink
 from runtime.contract.frames import quat_from_euler
 from sim.sitl.commander import ACCEPTED, DENIED, TEMPORARILY_REJECTED, Commander
 from sim.sitl.kinematics import Kinematics
-from sim.sitl.params import ParamTable
-from sim.sitl.px4 import HOLD, LAND, OFFBOARD, POSCTL, TAKEOFF, MainMode, Px4Mode
+from sim.sitl.params import INT32, OBL_HOLD, OBL_LAND, OBL_POSITION, OBL_RETURN, OBL_TERMINATE, Param, ParamError, ParamTable
+from sim.sitl.px4 import HOLD, LAND, OFFBOARD, POSCTL, RETURN, TAKEOFF, MainMode, Px4Mode
 from sim.sitl.setpoints import OffboardSetpoint, Sticks
 
 HOME = np.array([1.0, 3.0, 0.15])
@@ -107,17 +107,67 @@ def test_offboard_follows_the_setpoint(commander):
     assert cmd.yaw_rate_enu_rad_s == 0.3
 
 
-def test_offboard_loss_failsafe_switches_to_hold_after_com_of_loss_t(commander):
+def _lose_offboard(commander: Commander, action: int | None = None) -> Kinematics:
+    """Fly in OFFBOARD with the last setpoint at t = 2.0 s, COM_OBL_RC_ACT = ``action`` (None: PX4's default)."""
+    if action is not None:
+        commander._params.set_from_wire("COM_OBL_RC_ACT", ParamTable.wire_value(Param("COM_OBL_RC_ACT", action, INT32)), INT32)
     air = flying(commander)
     commander.on_setpoint(hover_setpoint(2.0))
     commander.set_mode(2.0, air, OFFBOARD)
     commander.drain_events()
     commander.update(2.99, air)
-    assert commander.mode == OFFBOARD
+    assert commander.mode == OFFBOARD  # not before COM_OF_LOSS_T = 1 s
     commander.update(3.01, air)
-    assert commander.mode == HOLD
+    return air
+
+
+def test_offboard_loss_by_default_is_position_mode_which_lands_without_rc(commander):
+    """PX4's default COM_OBL_RC_ACT = 0: Position mode, which without RC sticks cannot run, so the
+    vehicle descends where it is (PX4: "Matching flight task was not able to run" -> landing)."""
+    air = _lose_offboard(commander)
+    assert commander.mode == POSCTL
     (event,) = commander.drain_events()
-    assert event.severity == mavlink.MAV_SEVERITY_WARNING and "offboard lost" in event.text
+    assert event.severity == mavlink.MAV_SEVERITY_WARNING and "offboard lost" in event.text and "no RC" in event.text
+    cmd = commander.velocity_command(3.1, air)
+    assert cmd.vel_enu_m_s[2] == pytest.approx(-commander._params["MPC_LAND_SPEED"])
+
+
+def test_offboard_loss_in_position_mode_with_rc_holds_on_the_sticks(commander):
+    commander.on_sticks(Sticks(2.9, 0.0, 0.0, 0.0, 0.0))
+    air = _lose_offboard(commander)
+    assert commander.mode == POSCTL
+    np.testing.assert_allclose(commander.velocity_command(3.05, air).vel_enu_m_s, 0.0, atol=1e-9)  # brakes, no descent
+
+
+@pytest.mark.parametrize("action, mode", [(OBL_HOLD, HOLD), (OBL_LAND, LAND), (OBL_RETURN, RETURN)])
+def test_offboard_loss_follows_com_obl_rc_act(commander, action, mode):
+    air = _lose_offboard(commander, action)
+    assert commander.mode == mode and commander.armed
+    (event,) = commander.drain_events()
+    assert "offboard lost" in event.text and "no RC" not in event.text
+    cmd = commander.velocity_command(3.1, air)
+    if mode == HOLD:
+        np.testing.assert_allclose(cmd.vel_enu_m_s, 0.0, atol=1e-9)
+    elif mode == LAND:
+        assert cmd.vel_enu_m_s[2] < 0.0
+    else:  # Return: home at the current height, then Land there
+        away = kin(z=air.pos_enu_m[2], x=HOME[0] + 2.0)
+        cmd = commander.velocity_command(3.2, away)
+        assert cmd.vel_enu_m_s[0] < 0.0 and cmd.vel_enu_m_s[2] == pytest.approx(0.0, abs=1e-9)
+        commander.update(5.0, kin(z=air.pos_enu_m[2], x=HOME[0] + 0.1))
+        assert commander.mode == LAND
+
+
+def test_offboard_loss_with_terminate_stops_the_motors(commander):
+    _lose_offboard(commander, OBL_TERMINATE)
+    assert not commander.armed
+
+
+def test_com_obl_rc_act_accepts_only_px4_values():
+    params = ParamTable(takeoff_alt_m=1.0)
+    with pytest.raises(ParamError, match="COM_OBL_RC_ACT=9 is not one of"):
+        params.set_from_wire("COM_OBL_RC_ACT", ParamTable.wire_value(Param("COM_OBL_RC_ACT", 9, INT32)), INT32)
+    assert params["COM_OBL_RC_ACT"] == OBL_POSITION
 
 
 def test_hold_brakes_to_a_stop_then_holds_where_it_stopped(commander):

@@ -8,6 +8,7 @@ import math
 import random
 import socket
 import statistics
+import struct
 import time
 
 import numpy as np
@@ -152,7 +153,14 @@ def test_refusals_garbage_and_offboard_loss_failsafe(pilot_and_sitl):
     assert pilot.command(mavlink.MAV_CMD_DO_SET_MODE, *OFFBOARD) == mavlink.MAV_RESULT_ACCEPTED
     pilot.wait_mode(6, 0)
 
-    # Stop the stream: PX4's COM_OF_LOSS_T = 1 s later the vehicle falls back to Hold.
+    # The failsafe action is PX4's parameter, set as a ground station would: Hold (5) instead of
+    # the default Position mode (which lands a vehicle without RC: tests/sim/sitl/test_commander.py).
+    hold_action = struct.unpack("<f", struct.pack("<i", 5))[0]  # PX4 sends integers bytewise
+    pilot.link.mav.param_set_send(1, 1, b"COM_OBL_RC_ACT", hold_action, mavlink.MAV_PARAM_TYPE_INT32)
+    value = pilot.wait(lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == "COM_OBL_RC_ACT", 3.0, "PARAM_VALUE")
+    assert value.param_value == hold_action
+
+    # Stop the stream: COM_OF_LOSS_T = 1 s later the vehicle's failsafe switches to Hold.
     pilot.setpoint = None
     t_stop = pilot.t_last_setpoint_s
     text = pilot.wait(lambda m: m.get_type() == "STATUSTEXT" and "offboard lost" in m.text, 5.0, "offboard-loss failsafe")

@@ -1,0 +1,58 @@
+"""Bad arguments are refused by `cmnav` itself, before any process starts or any work is done:
+exit code 2 and one line naming the option, never a traceback from a child process."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.runtime.onnx_models import save, step_model
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _cmnav(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "cmnav", *args], capture_output=True, text=True, timeout=120, cwd=ROOT)
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory) -> Path:
+    return save(step_model(), tmp_path_factory.mktemp("models") / "good.onnx")
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--seed", "-5"], "--seed -5 must be an integer in [0, 2**64 - 1]"),
+    (["--seed", str(2**64)], f"--seed {2**64} must be an integer in [0, 2**64 - 1]"),
+    (["--level", "-1"], "--level -1 must be an integer >= 0 (the number of obstacles)"),
+    (["--timeout", "0"], "--timeout 0.0 must be a positive number of seconds"),
+    (["--timeout", "nan"], "--timeout nan must be a positive number of seconds"),
+])  # fmt: skip
+def test_sitl_ranges_are_checked_before_any_process_starts(model, tmp_path, args, message):
+    out = tmp_path / "runs"
+    proc = _cmnav("sitl", "--model", str(model), "--out", str(out), *args)
+    assert proc.returncode == 2 and proc.stderr.strip() == f"cmnav sitl: {message}", proc.stderr
+    assert not out.exists()
+
+
+def test_sitl_out_that_is_a_file_is_refused(model, tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    proc = _cmnav("sitl", "--model", str(model), "--out", str(blocker))
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert proc.stderr.strip() == f"cmnav sitl: --out {blocker}: {blocker} is a file, not a directory: pass a writable directory"
+
+
+def test_export_output_that_is_a_directory_is_refused(tmp_path):
+    proc = _cmnav("export", "goal-seeker", "-o", str(tmp_path))
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert f"-o {tmp_path}: {tmp_path} is a directory: give a file name" in proc.stderr
+
+
+def test_export_output_under_a_file_is_refused(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    proc = _cmnav("export", "goal-seeker", "-o", str(blocker / "sub" / "m.onnx"))
+    assert proc.returncode == 2 and f"{blocker} is a file, not a directory" in proc.stderr and "Traceback" not in proc.stderr
+    proc = _cmnav("export", "--encoder", "e", "--policy", "p", "-o", str(tmp_path))
+    assert proc.returncode == 2 and "is a directory" in proc.stderr and "Traceback" not in proc.stderr

@@ -15,7 +15,6 @@ import socket
 from pathlib import Path
 
 import pytest
-from pymavlink.dialects.v20 import common as mavlink
 
 from export.goal_seeker import export_goal_seeker
 from sim.sitl_session import free_port

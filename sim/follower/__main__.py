@@ -11,7 +11,8 @@ from sim.sitl.camera_server import CameraPortError
 from sim.sitl.vehicle import DEGRADATIONS, start_world_process
 
 from .follower import FollowerConfig, FollowerNotReadyError, WorldFollower
-from .pose_link import AutopilotLinkError, AutopilotUrlError, parse_autopilot_url
+from .pose_link import AutopilotLinkError
+from .url import AutopilotUrlError, parse_autopilot_url
 
 log = logging.getLogger("sim.follower")
 

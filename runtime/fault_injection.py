@@ -15,7 +15,7 @@ import numpy as np
 
 from .faults import FaultKind, Injection
 from .model import StepOutput
-from .vehicle import VehicleState
+from .state import VehicleState
 from .watchdog import Watchdog
 
 log = logging.getLogger(__name__)

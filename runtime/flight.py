@@ -49,7 +49,7 @@ from .policy_step import PolicyMemory, StepResult, compute_step
 from .recorder import Recorder
 from .slots import LatestSlot
 from .timing import StageTimes
-from .vehicle import VehicleError, VehicleState
+from .state import VehicleError, VehicleState
 from .watchdog import TripCause, WatchInputs, Watchdog
 
 log = logging.getLogger(__name__)

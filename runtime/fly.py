@@ -60,7 +60,8 @@ from .sdnotify import SystemdNotifier
 from .shutdown import close_step, in_daemon_thread
 from .signals import StopSignals, cancel_on_stop_signals, ignore_stop_signals
 from .stop import FlightPhase, Phase, stop_on_signal
-from .vehicle import MODE_OFFBOARD, Vehicle, VehicleError, VehicleState
+from .state import MODE_OFFBOARD, VehicleError, VehicleState
+from .vehicle import Vehicle
 
 log = logging.getLogger(__name__)
 

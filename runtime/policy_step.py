@@ -21,7 +21,7 @@ from .camera.frame import Frame
 from .contract import clip_action, observation_state, preprocess_depth, preprocess_gray
 from .contract.constants import ACTION_DIM
 from .model import PolicyModel, StepOutput
-from .vehicle import VehicleState
+from .state import VehicleState
 
 
 @dataclass(frozen=True)

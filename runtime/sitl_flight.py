@@ -49,7 +49,8 @@ from .recorder import Recorder, RecorderError
 from .shutdown import close_step, in_daemon_thread
 from .signals import StopSignals, cancel_on_stop_signals, ignore_stop_signals
 from .stop import FlightPhase, Phase, stop_on_signal
-from .vehicle import MODE_OFFBOARD, Vehicle, VehicleError
+from .state import MODE_OFFBOARD, VehicleError
+from .vehicle import Vehicle
 from .watchdog import TripCause
 
 log = logging.getLogger("runtime.sitl_flight")

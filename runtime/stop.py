@@ -23,7 +23,7 @@ import time
 from enum import Enum
 from typing import TYPE_CHECKING
 
-from .vehicle import MODE_OFFBOARD, VehicleError
+from .state import MODE_OFFBOARD, VehicleError
 
 if TYPE_CHECKING:
     from .flight import FlightLoop

@@ -12,7 +12,7 @@ from runtime.config import WatchdogConfig
 from runtime.fault_injection import FaultyPolicy, shrink_geofence, shrink_geofence_at
 from runtime.faults import FAULT_SITE, FaultKind, FaultSite, Injection, InjectionError, parse_injection
 from runtime.model import StepOutput
-from runtime.vehicle import VehicleState
+from runtime.state import VehicleState
 from runtime.watchdog import Watchdog
 
 S = 1_000_000_000

@@ -15,7 +15,7 @@ from runtime.contract.frames import quat_from_euler, quat_rotate
 from runtime.flight import FlightLoop
 from runtime.model import PolicyModel
 from runtime.recorder import Recorder
-from runtime.vehicle import VehicleHealth, VehicleState
+from runtime.state import VehicleHealth, VehicleState
 from tests.runtime.onnx_models import save, step_model
 
 HOME = np.array([0.0, 0.0, 0.0])

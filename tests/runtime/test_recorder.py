@@ -19,11 +19,12 @@ from runtime.config import RecorderConfig
 from runtime.contract import action_to_mavsdk, action_to_velocity_flu
 from runtime.model import StepOutput
 from runtime.policy_step import StepInputs, StepResult
-from runtime.recorder import (
+from runtime.log.topics import (
     TOPIC_ACTION, TOPIC_COMMAND, TOPIC_DEPTH, TOPIC_GRAY, TOPIC_LATENT, TOPIC_OBSERVATION, TOPIC_STATE,
-    TOPIC_TIMING, TOPIC_WATCHDOG, Recorder, RecorderError,
+    TOPIC_TIMING, TOPIC_WATCHDOG,
 )  # fmt: skip
-from runtime.vehicle import VehicleState
+from runtime.recorder import Recorder, RecorderError
+from runtime.state import VehicleState
 
 ALL_TOPICS = {TOPIC_DEPTH, TOPIC_GRAY, TOPIC_STATE, TOPIC_OBSERVATION, TOPIC_ACTION, TOPIC_COMMAND,
               TOPIC_LATENT, TOPIC_TIMING, TOPIC_WATCHDOG}  # fmt: skip

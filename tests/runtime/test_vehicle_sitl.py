@@ -21,7 +21,8 @@ from runtime.contract import HOVER, action_to_mavsdk
 from runtime.contract.frames import wrap_angle
 from runtime.flight import FlightLoop
 from runtime.model import PolicyModel
-from runtime.vehicle import MODE_HOLD, MODE_OFFBOARD, Vehicle
+from runtime.state import MODE_HOLD, MODE_OFFBOARD
+from runtime.vehicle import Vehicle
 from sim.sitl_session import free_port, stop_process
 
 pytestmark = pytest.mark.timeout(120)

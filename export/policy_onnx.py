@@ -340,7 +340,8 @@ def recorded_steps(log_path: str | Path) -> Iterator[tuple[np.ndarray, np.ndarra
     :class:`runtime.log_reader.ReplayError` for a file that is not a cmnav flight log or holds no
     step with its camera frame."""
     from runtime.contract import preprocess_depth, preprocess_gray
-    from runtime.log_reader import FRAME_TOPICS, STEP_TOPICS, FlightLogReader, LoggedFrame, ReplayError
+    from runtime.log.topics import FRAME_TOPICS, STEP_TOPICS
+    from runtime.log_reader import FlightLogReader, LoggedFrame, ReplayError
 
     reader = FlightLogReader(log_path)
     frames: dict[int, LoggedFrame] = {}

@@ -22,6 +22,7 @@ watchdog trip or the pilot taking over.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -83,6 +84,11 @@ class EpisodeResult:
     final_distance_m: float = float("nan")
     frames_rejected: int = 0  # unfit camera frames since FlightLoop.start (runtime.camera.validate)
     tracking_error_peak_m_s: float = 0.0  # the largest tracking error sustained a whole window (runtime.tracking)
+
+    def summary(self) -> dict:
+        """The episode's JSON record: the keys of an episode in ``cmnav fly``'s summary and of the
+        SITL flight's summary."""
+        return dataclasses.asdict(self)
 
 
 class FlightLoop:

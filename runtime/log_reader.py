@@ -31,7 +31,7 @@ from mcap.stream_reader import CRCValidationError, StreamReader
 from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoderFactory
 
 from .contract import CONTRACT_VERSION
-from .log.topics import FRAME_TOPICS, METADATA_NAME, STEP_TOPICS, TOPIC_ACTION, TOPIC_DEPTH, TOPIC_GRAY, TOPIC_OBSERVATION
+from .log.topics import METADATA_NAME, TOPIC_DEPTH, TOPIC_GRAY, TOPIC_OBSERVATION
 
 log = logging.getLogger(__name__)
 

@@ -18,7 +18,8 @@ from pathlib import Path
 from typing import AsyncIterator, Iterator
 
 from ..contract import CONTROL_PERIOD_S
-from ..log_reader import FRAME_TOPICS, FlightLogReader, LoggedFrame, LoggedStep, ReplayError
+from ..log.topics import FRAME_TOPICS
+from ..log_reader import FlightLogReader, LoggedFrame, LoggedStep, ReplayError
 from .frame import Frame
 
 log = logging.getLogger(__name__)

@@ -66,6 +66,29 @@ def test_dry_run_flies_to_the_goal_notifies_systemd_and_replays(goal_seeker, tmp
     assert report.max_abs_diff <= 1e-5
 
 
+def test_dry_run_lands_when_the_autopilot_refuses_offboard(goal_seeker, tmp_path):
+    """The episode script (``runtime.episode``) that ``cmnav sitl`` flies too: the refusal is the
+    episode's trip, Hold, then the landing; the policy never flies."""
+    runtime_port = free_port(socket.SOCK_DGRAM)
+    sitl = Sitl(tmp_path, runtime_port, inject=("offboard-refused@0",))
+    notify = NotifyListener(tmp_path / "notify")
+    try:
+        mission = f"allow_arm_takeoff = true\ntakeoff_alt_m = {sitl.episode['takeoff_alt_m']:.3f}\nmax_episodes = 1"
+        config = fly_config(goal_seeker, runtime_port, sitl.camera_port, _near_goal(sitl), tmp_path / "logs", mission)
+        code, summary = finish_fly(start_fly(tmp_path, config, notify), tmp_path)
+    finally:
+        sitl.stop()
+        notify.close()
+    log_text = (tmp_path / "fly.log").read_text()
+    assert code == 1, f"exit {code}: {summary}\n{log_text[-4000:]}"
+    (episode,) = summary["episodes"]
+    assert (episode["outcome"], episode["abort_reason"], episode["frames"]) == ("aborted", "offboard_refused", 0)
+    assert [t["cause"] for t in episode["watchdog_trips"]] == ["offboard_refused"]
+    assert episode["log"] is not None and Path(episode["log"]).exists()
+    assert "landed and disarmed" in log_text and "Traceback" not in log_text
+    assert sitl.modes()[-1] == "LAND", sitl.modes()
+
+
 def test_pilot_mode_waits_for_the_pilot_then_flies(goal_seeker, tmp_path):
     runtime_port, pilot_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
     router = MavlinkRouter(runtime_port, pilot_port)

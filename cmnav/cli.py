@@ -189,7 +189,7 @@ def _cmd_eval_policy(args: argparse.Namespace) -> int:
 
 
 def _cmd_pipeline(args: argparse.Namespace) -> int:
-    from training.pipeline import PipelineConfig, run_pipeline
+    from cmnav.pipeline import PipelineConfig, run_pipeline
 
     config = PipelineConfig(
         out_dir=args.out, minutes=args.minutes, device=args.device, seed=args.seed, dataset_count=args.dataset_count,

@@ -9,7 +9,7 @@ time limit or an abort, hovers, Holds, lands, waits for disarm and writes the su
 the autopilot refuses offboard, it records the trip (``offboard_refused``), commands Hold and
 lands without flying; if the pilot takes over, it stops commanding and does nothing more; after
 a ``vehicle_fault`` trip with the vehicle disarmed (a crash), there is nothing to land.
-``--inject`` (tests only) injects the runtime's faults of ``runtime.faults``.
+``--inject`` (tests only) injects the runtime's faults of ``runtime.faults.catalogue``.
 
 Unlike the field program this one arms and takes off by itself: that is what a SITL dry run is.
 
@@ -43,8 +43,8 @@ from .camera.sim_source import SimCameraSource
 from .config import PolicyConfig, ProcessConfig, RecorderConfig, RuntimeConfig, VehicleConfig
 from .contract import ContractMismatchError
 from .episode import EpisodeError, EpisodeScript
-from .fault_injection import FaultyPolicy, shrink_geofence, shrink_geofence_at
-from .faults import FaultKind, FaultSite, Injection, InjectionError, parse_injection
+from .faults.injection import FaultyPolicy, shrink_geofence, shrink_geofence_at
+from .faults.catalogue import FaultKind, FaultSite, Injection, InjectionError, parse_injection
 from .flight import EpisodeResult, FlightLoop, log_task_failure
 from .model import ModelLoadError, PolicyModel, check_outputs_finite
 from .recorder import Recorder, RecorderError

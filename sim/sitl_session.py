@@ -8,7 +8,7 @@ the ground truth overrides the runtime's view (a crash is a crash, whatever the 
 then the crash time in ground truth, and ``crash_detect_ms`` how long the runtime took to trip
 on it (its ``tracking`` or ``vehicle_fault`` trip; null if it never did).
 
-Fault injection (``--inject KIND@SECONDS``, ``runtime.faults``): each fault goes to the process
+Fault injection (``--inject KIND@SECONDS``, ``runtime.faults.catalogue``): each fault goes to the process
 where it happens (vehicle or runtime); ``runtime-kill`` is done here, SIGKILL to the runtime's
 PID SECONDS after the vehicle entered OFFBOARD (read from the vehicle's live status file).  When
 a faulted flight does not end in a landing, the vehicle runs FAULT_OBSERVE_S longer, so ground
@@ -38,7 +38,7 @@ import numpy as np
 
 from runtime.contract import ContractMismatchError
 from runtime.contract.constants import GOAL_REACHED_RADIUS_M
-from runtime.faults import FaultKind, FaultSite, Injection, InjectionError, parse_injection
+from runtime.faults.catalogue import FaultKind, FaultSite, Injection, InjectionError, parse_injection
 from runtime.model import ModelLoadError, PolicyModel, check_outputs_finite
 from runtime.paths import directory_problem
 

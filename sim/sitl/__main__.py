@@ -9,7 +9,7 @@ import sys
 import threading
 from pathlib import Path
 
-from runtime.faults import FaultSite, parse_injection
+from runtime.faults.catalogue import FaultSite, parse_injection
 
 from .camera_server import CameraPortError
 from .vehicle import SitlConfig, SitlVehicle, limit_torch_threads

@@ -1,4 +1,4 @@
-"""Fault injection syntax (runtime.faults) and the runtime's own injected faults (runtime.fault_injection)."""
+"""Fault injection syntax (runtime.faults.catalogue) and the runtime's own injected faults (runtime.faults.injection)."""
 
 import asyncio
 import time
@@ -6,11 +6,11 @@ import time
 import numpy as np
 import pytest
 
-from runtime import fault_injection
+from runtime.faults import injection as fault_injection
 from runtime.command_gate import CommandGate
 from runtime.config import WatchdogConfig
-from runtime.fault_injection import FaultyPolicy, shrink_geofence, shrink_geofence_at
-from runtime.faults import FAULT_SITE, FaultKind, FaultSite, Injection, InjectionError, parse_injection
+from runtime.faults.injection import FaultyPolicy, shrink_geofence, shrink_geofence_at
+from runtime.faults.catalogue import FAULT_SITE, FaultKind, FaultSite, Injection, InjectionError, parse_injection
 from runtime.model import StepOutput
 from runtime.state import VehicleState
 from runtime.watchdog import Watchdog

@@ -17,7 +17,7 @@ def _cmd_sitl(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from runtime.paths import output_file_problem
+    from runtime.service.paths import output_file_problem
 
     if (problem := output_file_problem(args.output)) is not None:
         print(f"cmnav export goal-seeker: -o {args.output}: {problem}", file=sys.stderr)
@@ -36,14 +36,14 @@ def _cmd_export_policy(args: argparse.Namespace) -> int:
     if missing:
         print(f"cmnav export: {', '.join(missing)} required (or `cmnav export goal-seeker -o PATH`)", file=sys.stderr)
         return 2
-    from runtime.paths import output_file_problem
+    from runtime.service.paths import output_file_problem
 
     if (problem := output_file_problem(args.model_out)) is not None:
         print(f"cmnav export: -o {args.model_out}: {problem}", file=sys.stderr)
         return 2
     from export.policy_onnx import ExportError, VariantRefusedError, export_policy
     from runtime.contract import ContractMismatchError
-    from runtime.log_reader import ReplayError
+    from runtime.log.reader import ReplayError
     from runtime.model import ModelLoadError
 
     variants = tuple(v for v in args.variants.split(",") if v) if args.variants else ()
@@ -253,7 +253,7 @@ def _cmd_bench_runtime(args: argparse.Namespace) -> int:
 
 
 def _cmd_fly(args: argparse.Namespace) -> int:
-    from runtime.fly import run_fly
+    from runtime.programs.fly import run_fly
 
     return run_fly(args.config, print_json=args.json, check_only=args.check)
 
@@ -261,7 +261,7 @@ def _cmd_fly(args: argparse.Namespace) -> int:
 def _cmd_replay(args: argparse.Namespace) -> int:
     import json
 
-    from runtime.replay import ReplayError, replay_log
+    from runtime.programs.replay import ReplayError, replay_log
 
     try:
         report = replay_log(args.log, args.model)

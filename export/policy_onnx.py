@@ -337,11 +337,11 @@ def recorded_steps(log_path: str | Path) -> Iterator[tuple[np.ndarray, np.ndarra
     """The policy steps of a flight log (``cmnav fly`` / ``cmnav sitl``) in order: (gray, depth
     [1, 1, 224, 224] through the contract's preprocessing, the recorded 15-value state [1, 15],
     the step's GRU epoch: it changes where the flight reset the hidden state).  Raises
-    :class:`runtime.log_reader.ReplayError` for a file that is not a cmnav flight log or holds no
+    :class:`runtime.log.reader.ReplayError` for a file that is not a cmnav flight log or holds no
     step with its camera frame."""
     from runtime.contract import preprocess_depth, preprocess_gray
     from runtime.log.topics import FRAME_TOPICS, STEP_TOPICS
-    from runtime.log_reader import FlightLogReader, LoggedFrame, ReplayError
+    from runtime.log.reader import FlightLogReader, LoggedFrame, ReplayError
 
     reader = FlightLogReader(log_path)
     frames: dict[int, LoggedFrame] = {}

@@ -20,7 +20,7 @@ from typing import Any
 
 from .config import ConfigError, RuntimeConfig
 from .contract import LimitError
-from .paths import directory_problem
+from .service.paths import directory_problem
 
 if sys.version_info >= (3, 11):
     import tomllib

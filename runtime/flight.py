@@ -45,12 +45,12 @@ from .contract import (
     velocity_flu_to_mavsdk,
 )
 from .contract.constants import GOAL_REACHED_RADIUS_M
+from .log.recorder import Recorder
 from .model import PolicyModel
 from .policy_step import PolicyMemory, StepResult, compute_step
-from .recorder import Recorder
 from .slots import LatestSlot
-from .timing import StageTimes
 from .state import VehicleError, VehicleState
+from .timing import StageTimes
 from .watchdog import TripCause, WatchInputs, Watchdog
 
 log = logging.getLogger(__name__)

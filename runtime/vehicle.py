@@ -24,7 +24,7 @@ from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 from .config import VehicleConfig
 from .contract import HOVER, VelocityBodyYawspeed
 from .contract.frames import ned_to_enu, quat_ned_frd_to_enu_flu
-from .shutdown import in_daemon_thread
+from .service.shutdown import in_daemon_thread
 from .state import (
     MODE_HOLD,
     MODE_OFFBOARD,
@@ -84,7 +84,7 @@ class Vehicle:
     async def close(self) -> None:
         """Stop the telemetry subscriptions and release MAVSDK (stops any setpoint re-sending).
 
-        MAVSDK's C teardown runs in a daemon thread: bounded by :func:`runtime.shutdown.close_step`,
+        MAVSDK's C teardown runs in a daemon thread: bounded by :func:`runtime.service.shutdown.close_step`,
         a teardown that never returns cannot keep the process alive after landing."""
         for task in self._tasks:
             task.cancel()

@@ -35,7 +35,7 @@ SHARED_FROM_RUNTIME = (
     "runtime.log.topics",  # the flight log's topic names (sim reads logs)
     "runtime.faults.catalogue",  # the fault kinds and their KIND@SECONDS syntax, shared by both sides
     "runtime.config",  # the runtime's thresholds the follower's judge applies (WatchdogConfig)
-    "runtime.paths",  # the output directory check, with its message
+    "runtime.service.paths",  # the output directory check, with its message
 )
 # Module -> runtime modules it may import besides the shared ones, with the reason.
 EXTRA_FROM_RUNTIME = {

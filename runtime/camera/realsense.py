@@ -17,7 +17,7 @@ import numpy as np
 
 from ..contract import constants as c
 from ..contract.images import gray_from_bgr
-from ..shutdown import in_daemon_thread
+from ..service.shutdown import in_daemon_thread
 from .frame import Frame
 
 log = logging.getLogger(__name__)

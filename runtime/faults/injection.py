@@ -1,4 +1,4 @@
-"""The faults ``runtime.sitl_flight --inject`` injects inside the runtime process (catalogue and
+"""The faults ``runtime.programs.sitl --inject`` injects inside the runtime process (catalogue and
 syntax: ``runtime.faults.catalogue``): ``inference-overrun`` and ``nan-action`` around the model step
 (:class:`FaultyPolicy`), ``geofence`` by shrinking the watchdog's fence (:func:`shrink_geofence`,
 :func:`shrink_geofence_at`).  Used only when an injection is asked for.
@@ -13,10 +13,10 @@ from typing import Callable, Iterable, Protocol
 
 import numpy as np
 
-from .catalogue import FaultKind, Injection
 from ..model import StepOutput
 from ..state import VehicleState
 from ..watchdog import Watchdog
+from .catalogue import FaultKind, Injection
 
 log = logging.getLogger(__name__)
 

@@ -17,7 +17,7 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from export.goal_seeker import export_goal_seeker
-from runtime.replay import replay_log
+from runtime.programs.replay import replay_log
 from sim.sitl_session import free_port
 from tests.e2e.fly_helpers import READY_TIMEOUT_S, MavlinkRouter, NotifyListener, Pilot, Sitl, finish_fly, fly_config, start_fly
 
@@ -67,7 +67,7 @@ def test_dry_run_flies_to_the_goal_notifies_systemd_and_replays(goal_seeker, tmp
 
 
 def test_dry_run_lands_when_the_autopilot_refuses_offboard(goal_seeker, tmp_path):
-    """The episode script (``runtime.episode``) that ``cmnav sitl`` flies too: the refusal is the
+    """The episode script (``runtime.programs.episode``) that ``cmnav sitl`` flies too: the refusal is the
     episode's trip, Hold, then the landing; the policy never flies."""
     runtime_port = free_port(socket.SOCK_DGRAM)
     sitl = Sitl(tmp_path, runtime_port, inject=("offboard-refused@0",))

@@ -14,7 +14,7 @@ from runtime.contract import HOVER, CONTROL_PERIOD_S, mavsdk_to_velocity_flu
 from runtime.contract.frames import quat_from_euler, quat_rotate
 from runtime.flight import FlightLoop
 from runtime.model import PolicyModel
-from runtime.recorder import Recorder
+from runtime.log.recorder import Recorder
 from runtime.state import VehicleHealth, VehicleState
 from tests.runtime.onnx_models import save, step_model
 

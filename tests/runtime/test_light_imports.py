@@ -11,8 +11,8 @@ import pytest
 LIGHT_MODULES = (
     "runtime.state",
     "runtime.log.topics",
-    "runtime.log_reader",
-    "runtime.replay",
+    "runtime.log.reader",
+    "runtime.programs.replay",
     "runtime.policy_step",
     "runtime.watchdog",
 )

@@ -23,7 +23,7 @@ from runtime.log.topics import (
     TOPIC_ACTION, TOPIC_COMMAND, TOPIC_DEPTH, TOPIC_GRAY, TOPIC_LATENT, TOPIC_OBSERVATION, TOPIC_STATE,
     TOPIC_TIMING, TOPIC_WATCHDOG,
 )  # fmt: skip
-from runtime.recorder import Recorder, RecorderError
+from runtime.log.recorder import Recorder, RecorderError
 from runtime.state import VehicleState
 
 ALL_TOPICS = {TOPIC_DEPTH, TOPIC_GRAY, TOPIC_STATE, TOPIC_OBSERVATION, TOPIC_ACTION, TOPIC_COMMAND,
@@ -121,7 +121,7 @@ WRITER = textwrap.dedent(
     sys.path.insert(0, {tests!r})
     from test_recorder import _log_one_step
     from runtime.config import RecorderConfig
-    from runtime.recorder import Recorder
+    from runtime.log.recorder import Recorder
 
     rec = Recorder(sys.argv[1], RecorderConfig(flush_period_s=0.5))
     rec.log_watchdog(time.monotonic_ns(), {{"event": "start"}})

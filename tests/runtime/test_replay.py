@@ -20,9 +20,9 @@ from runtime.config import RecorderConfig, RuntimeConfig, WatchdogConfig
 from runtime.contract import CONTROL_PERIOD_S
 from runtime.flight import FlightLoop
 from runtime.model import PolicyModel
-from runtime.recorder import Recorder
-from runtime import replay as replay_module
-from runtime.replay import ReplayError, replay_log
+from runtime.log.recorder import Recorder
+from runtime.programs import replay as replay_module
+from runtime.programs.replay import ReplayError, replay_log
 from tests.runtime.onnx_models import recurrent_step_model, save
 from tests.runtime.test_flight_loop import START, KinematicVehicle
 

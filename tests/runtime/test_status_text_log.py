@@ -9,7 +9,7 @@ from mcap.reader import make_reader
 
 from runtime.config import RecorderConfig
 from runtime.log.topics import TOPIC_STATUS_TEXT
-from runtime.recorder import Recorder
+from runtime.log.recorder import Recorder
 from runtime.state import StatusText
 from runtime.vehicle import Vehicle
 

@@ -1,4 +1,4 @@
-"""Reading a cmnav flight log (MCAP, written by ``runtime.recorder``) back, front to back.
+"""Reading a cmnav flight log (MCAP, written by ``runtime.log.recorder``) back, front to back.
 
 Used by ``cmnav replay`` and by the ``replay`` camera source.  The file is streamed
 (``mcap.stream_reader.StreamReader``) rather than read through its summary: a log cut short by a
@@ -30,8 +30,8 @@ from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import CRCValidationError, StreamReader
 from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoderFactory
 
-from .contract import CONTRACT_VERSION
-from .log.topics import METADATA_NAME, TOPIC_DEPTH, TOPIC_GRAY, TOPIC_OBSERVATION
+from ..contract import CONTRACT_VERSION
+from .topics import METADATA_NAME, TOPIC_DEPTH, TOPIC_GRAY, TOPIC_OBSERVATION
 
 log = logging.getLogger(__name__)
 

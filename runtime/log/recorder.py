@@ -48,9 +48,12 @@ from foxglove.channels import RawImageChannel
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 from foxglove.messages import RawImage, Timestamp
 
-from .camera.frame import Frame
-from .config import RecorderConfig
-from .log.topics import (
+from ..camera.frame import Frame
+from ..config import RecorderConfig
+from ..contract import CONTRACT_VERSION, VelocityBodyYawspeed
+from ..policy_step import StepResult
+from ..state import StatusText, VehicleState
+from .topics import (
     CAMERA_FRAME_ID,
     METADATA_NAME,
     TOPIC_ACTION,
@@ -64,9 +67,6 @@ from .log.topics import (
     TOPIC_TIMING,
     TOPIC_WATCHDOG,
 )
-from .contract import CONTRACT_VERSION, VelocityBodyYawspeed
-from .policy_step import StepResult
-from .state import StatusText, VehicleState
 
 log = logging.getLogger(__name__)
 # foxglove reports a failed channel write here (one warning per message) instead of raising.
@@ -208,7 +208,7 @@ class Recorder:
         """Write what is queued, then close the file (its summary makes it seekable).  Never raises:
         a failure is logged once and kept in ``stats.log_error``.  The writer thread gets
         ``timeout_s``; the file's close itself can block on a hung disk, so callers in the flight
-        program run this in a daemon thread with a bound (``runtime.shutdown``)."""
+        program run this in a daemon thread with a bound (``runtime.service.shutdown``)."""
         if self._closed:
             return
         self._closed = True

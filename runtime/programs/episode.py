@@ -13,8 +13,8 @@ setpoint, offboard → fly the policy → pilot check → land, wait for disarm.
 - The pilot took over during the episode: nothing more is commanded; the vehicle is theirs.
 - A ``vehicle_fault`` trip with the vehicle disarmed (a crash): there is nothing to land.
 
-Every step enters its :class:`runtime.stop.Phase` first, so a stop signal at any moment is
-answered with that phase's safe state (``runtime.stop``).
+Every step enters its :class:`runtime.programs.stop.Phase` first, so a stop signal at any moment is
+answered with that phase's safe state (``runtime.programs.stop``).
 """
 
 from __future__ import annotations
@@ -26,12 +26,12 @@ from typing import Awaitable, Callable, TypeVar
 
 import numpy as np
 
-from .contract import HOVER
-from .flight import EpisodeResult, FlightLoop
-from .state import MODE_OFFBOARD, VehicleError, VehicleState
+from ..contract import HOVER
+from ..flight import EpisodeResult, FlightLoop
+from ..state import MODE_OFFBOARD, VehicleError, VehicleState
+from ..vehicle import Vehicle
+from ..watchdog import TripCause
 from .stop import FlightPhase, Phase
-from .vehicle import Vehicle
-from .watchdog import TripCause
 
 log = logging.getLogger(__name__)
 

@@ -12,7 +12,7 @@ a vehicle that was already there.  It then flies an episode toward the goal (rel
 the take-off point; the GRU state resets on entering offboard), commands hover then Hold, and
 waits for the next switch to offboard (``mission.max_episodes``, 0 = until stopped).  If the pilot
 leaves offboard mid-episode the runtime stops commanding at once.  With ``allow_arm_takeoff =
-true`` (SITL dry runs) it flies the episode script (``runtime.episode``, the same as ``cmnav
+true`` (SITL dry runs) it flies the episode script (``runtime.programs.episode``, the same as ``cmnav
 sitl``): arms, takes off, enters offboard itself, flies one episode, lands and exits; if the
 autopilot refuses offboard, the refusal is recorded as the episode and the vehicle lands.
 
@@ -22,7 +22,7 @@ WATCHDOG pings from the flight loop's healthy iterations (and from the waiting p
 event loop runs), so a stalled loop is killed and restarted.
 
 A stop signal (SIGTERM from ``systemctl stop``, SIGINT) at any moment ends in a state the runtime
-commands (``runtime.stop``: in offboard a hover setpoint, then Hold at once; taking off, Hold;
+commands (``runtime.programs.stop``: in offboard a hover setpoint, then Hold at once; taking off, Hold;
 landing goes on), never in the autopilot's offboard-loss failsafe; the summary's ``stop`` records
 the signal, the phase it interrupted, the action and the time.
 
@@ -44,26 +44,26 @@ from typing import Awaitable, TypeVar
 
 import numpy as np
 
-from .affinity import pin_process
-from .camera import CameraSource
-from .camera.realsense import RealSenseSource, RealSenseUnavailableError
-from .camera.replay_source import ReplayCameraSource
-from .camera.sim_source import SimCameraSource
-from .config import CameraConfig, RuntimeConfig
-from .config_loader import ConfigError, load_config
-from .contract import HOVER, ContractMismatchError
+from ..camera import CameraSource
+from ..camera.realsense import RealSenseSource, RealSenseUnavailableError
+from ..camera.replay_source import ReplayCameraSource
+from ..camera.sim_source import SimCameraSource
+from ..config import CameraConfig, RuntimeConfig
+from ..config_loader import ConfigError, load_config
+from ..contract import HOVER, ContractMismatchError
+from ..flight import EpisodeResult, FlightLoop
+from ..log.reader import ReplayError
+from ..log.recorder import Recorder, RecorderError
+from ..log.rotation import new_log_path, rotate_logs
+from ..model import ModelLoadError, PolicyModel, check_outputs_finite, resolve_providers
+from ..service.affinity import pin_process
+from ..service.sdnotify import SystemdNotifier
+from ..service.shutdown import close_step, in_daemon_thread
+from ..service.signals import StopSignals, cancel_on_stop_signals, ignore_stop_signals
+from ..state import MODE_OFFBOARD, VehicleError, VehicleState
+from ..vehicle import Vehicle
 from .episode import EpisodeError, EpisodeScript, OffboardWithheld
-from .flight import EpisodeResult, FlightLoop
-from .log_reader import ReplayError
-from .log_rotation import new_log_path, rotate_logs
-from .model import ModelLoadError, PolicyModel, check_outputs_finite, resolve_providers
-from .recorder import Recorder, RecorderError
-from .sdnotify import SystemdNotifier
-from .shutdown import close_step, in_daemon_thread
-from .signals import StopSignals, cancel_on_stop_signals, ignore_stop_signals
 from .stop import FlightPhase, Phase, stop_on_signal
-from .state import MODE_OFFBOARD, VehicleError, VehicleState
-from .vehicle import Vehicle
 
 log = logging.getLogger(__name__)
 
@@ -123,7 +123,7 @@ class FieldProgram:
         self.config = config
         self.notifier = notifier
         self.summary: dict = {"episodes": [], "logs": [], "error": None, "stop": None, "log_error": None}
-        self.flight = FlightPhase()  # what a stop signal interrupts (runtime.stop)
+        self.flight = FlightPhase()  # what a stop signal interrupts (runtime.programs.stop)
         self.signals: StopSignals | None = None  # set by the entry point
         self._t_start_ns = time.monotonic_ns()
 
@@ -168,7 +168,7 @@ class FieldProgram:
     # ------------------------------------------------------------------ start-up
 
     async def stop(self, loop: FlightLoop | None, vehicle: Vehicle | None) -> None:
-        """The safe stop after a stop signal, once (``runtime.stop``); records ``summary["stop"]``."""
+        """The safe stop after a stop signal, once (``runtime.programs.stop``); records ``summary["stop"]``."""
         if self.summary["stop"] is not None or self.signals is None:
             return
         self.summary["stop"] = await stop_on_signal(self.signals, self.flight, loop, vehicle, self._t_start_ns)
@@ -206,7 +206,7 @@ class FieldProgram:
         return EXIT_OK
 
     async def _dry_run(self, script: EpisodeScript, model: PolicyModel) -> int:
-        """The episode script (``runtime.episode``): arm, take off, enter offboard, fly one
+        """The episode script (``runtime.programs.episode``): arm, take off, enter offboard, fly one
         episode, land (``mission.allow_arm_takeoff``)."""
         loop = script.loop
         recorder: Recorder | None = None

@@ -1,7 +1,7 @@
-"""``python -m runtime.sitl_flight``: fly one SITL episode with the runtime (the SITL dry run).
+"""``python -m runtime.programs.sitl``: fly one SITL episode with the runtime (the SITL dry run).
 
 Connects to the SITL vehicle (MAVSDK ``udpin://127.0.0.1:PORT``) and its camera link (TCP
-127.0.0.1) and flies the episode script (``runtime.episode``, the same as ``cmnav fly``'s dry
+127.0.0.1) and flies the episode script (``runtime.programs.episode``, the same as ``cmnav fly``'s dry
 run): waits for health (armable, local position, home) and a first frame, arms, takes off to
 ``--takeoff-alt-m`` and waits for Hold there, sets a hover setpoint, starts offboard, flies the
 policy (:class:`runtime.flight.FlightLoop`) until within GOAL_REACHED_RADIUS_M of the goal, the
@@ -38,23 +38,23 @@ from pathlib import Path
 
 import numpy as np
 
-from .affinity import pin_process
-from .camera.sim_source import SimCameraSource
-from .config import PolicyConfig, ProcessConfig, RecorderConfig, RuntimeConfig, VehicleConfig
-from .contract import ContractMismatchError
+from ..camera.sim_source import SimCameraSource
+from ..config import PolicyConfig, ProcessConfig, RecorderConfig, RuntimeConfig, VehicleConfig
+from ..contract import ContractMismatchError
+from ..faults.catalogue import FaultKind, FaultSite, Injection, InjectionError, parse_injection
+from ..faults.injection import FaultyPolicy, shrink_geofence, shrink_geofence_at
+from ..flight import EpisodeResult, FlightLoop, log_task_failure
+from ..log.recorder import Recorder, RecorderError
+from ..model import ModelLoadError, PolicyModel, check_outputs_finite
+from ..service.affinity import pin_process
+from ..service.shutdown import close_step, in_daemon_thread
+from ..service.signals import StopSignals, cancel_on_stop_signals, ignore_stop_signals
+from ..state import VehicleError, VehicleState
+from ..vehicle import Vehicle
 from .episode import EpisodeError, EpisodeScript
-from .faults.injection import FaultyPolicy, shrink_geofence, shrink_geofence_at
-from .faults.catalogue import FaultKind, FaultSite, Injection, InjectionError, parse_injection
-from .flight import EpisodeResult, FlightLoop, log_task_failure
-from .model import ModelLoadError, PolicyModel, check_outputs_finite
-from .recorder import Recorder, RecorderError
-from .shutdown import close_step, in_daemon_thread
-from .signals import StopSignals, cancel_on_stop_signals, ignore_stop_signals
 from .stop import FlightPhase, stop_on_signal
-from .state import VehicleError, VehicleState
-from .vehicle import Vehicle
 
-log = logging.getLogger("runtime.sitl_flight")
+log = logging.getLogger("runtime.programs.sitl")
 
 T_IMPORT_NS = time.monotonic_ns()
 FIRST_FRAME_TIMEOUT_S = 10.0
@@ -75,7 +75,7 @@ class FlightError(EpisodeError):
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m runtime.sitl_flight", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m runtime.programs.sitl", description=__doc__.split("\n\n")[0])
     parser.add_argument("--mavlink-port", type=int, required=True, help="UDP port MAVSDK listens on (127.0.0.1)")
     parser.add_argument("--camera-port", type=int, required=True, help="the SITL vehicle's camera TCP port (127.0.0.1)")
     parser.add_argument("--model", type=Path, required=True, help="ONNX model with the runtime's contract")
@@ -118,7 +118,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 async def fly_episode(args: argparse.Namespace, summary: dict, signals: StopSignals | None = None) -> EpisodeResult:
     """Everything between process start and disarm; fills ``summary`` as it goes.  On a stop
-    signal (``signals``) it commands the safe state of the phase it interrupted (``runtime.stop``),
+    signal (``signals``) it commands the safe state of the phase it interrupted (``runtime.programs.stop``),
     records ``summary["stop"]`` and what was flown, and re-raises the cancellation."""
     flight = FlightPhase()
     config = RuntimeConfig(

@@ -248,7 +248,7 @@ class TensorRtConfig:
 
 
 @dataclass(frozen=True)
-class PolicyConfig:
+class PolicyModelConfig:
     """The ONNX model, where it runs, and the deployment's action limits."""
 
     model_path: Path = Path("model.onnx")
@@ -451,7 +451,7 @@ class SystemdConfig:
 class RuntimeConfig:
     """Everything the flight loop needs besides the contract."""
 
-    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    policy: PolicyModelConfig = field(default_factory=PolicyModelConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     watchdog: WatchdogConfig = field(default_factory=WatchdogConfig)
     recorder: RecorderConfig = field(default_factory=RecorderConfig)

@@ -20,7 +20,7 @@ import numpy as np
 from .camera.frame import Frame
 from .contract import clip_action, observation_state, preprocess_depth, preprocess_gray
 from .contract.constants import ACTION_DIM
-from .model import PolicyModel, StepOutput
+from .model import ModelOutput, PolicyModel
 from .state import VehicleState
 
 
@@ -53,7 +53,7 @@ class StepResult:
 
     inputs: StepInputs
     observation_state: np.ndarray
-    output: StepOutput
+    output: ModelOutput
     action_clipped: np.ndarray
     t_preprocessed_ns: int
     t_observed_ns: int

@@ -166,7 +166,7 @@ class EpisodeScript:
         trip = loop.watchdog.refuse_start(TripCause.OFFBOARD_REFUSED, f"offboard did not start: {err}", t_request_ns, time.monotonic_ns())
         await self.vehicle.stop_offboard()
         return EpisodeResult(
-            outcome="aborted", abort_reason=trip.cause.value, time_s=0.0, frames=0, frames_received=loop.frames_received,
+            outcome="aborted", abort_reason=trip.cause.value, time_s=0.0, steps=0, frames_received=loop.frames_received,
             missed_deadlines=0, bad_frames=0, step_ms={"p50": None, "p99": None, "max": None, "n": 0}, stage_ms={},
             watchdog_trips=loop.watchdog.records(), final_distance_m=float("nan"), frames_rejected=loop.frames_rejected,
         )  # fmt: skip

@@ -284,7 +284,7 @@ class FieldProgram:
                 await self._close_log(recorder)
         self._record_episode(result, episode, recorder)
         log.info("episode %d: %s in %.2f s (%d steps, final distance %.2f m, trips %s)", episode, result.outcome,
-                 result.time_s, result.frames, result.final_distance_m, [t["cause"] for t in result.watchdog_trips])  # fmt: skip
+                 result.time_s, result.steps, result.final_distance_m, [t["cause"] for t in result.watchdog_trips])  # fmt: skip
         self.notifier.status(f"episode {episode}: {result.outcome}" + (f" ({result.abort_reason})" if result.abort_reason else ""))
         return result
 

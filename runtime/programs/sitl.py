@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera.sim_source import SimCameraSource
-from ..config import PolicyConfig, ProcessConfig, RecorderConfig, RuntimeConfig, VehicleConfig
+from ..config import PolicyModelConfig, ProcessConfig, RecorderConfig, RuntimeConfig, VehicleConfig
 from ..contract import ContractMismatchError
 from ..faults.catalogue import FaultKind, FaultSite, Injection, InjectionError, parse_injection
 from ..faults.injection import FaultyPolicy, shrink_geofence, shrink_geofence_at
@@ -110,7 +110,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error(f"--timeout-s {args.timeout_s}: expected a positive number of seconds")
     try:
         args.process = ProcessConfig(cpu_affinity=tuple(int(v) for v in args.cpu_affinity.split(",") if v.strip()))
-        args.policy = PolicyConfig(model_path=args.model, providers=tuple(args.providers.split(",")), intra_op_threads=args.intra_op_threads)
+        args.policy = PolicyModelConfig(model_path=args.model, providers=tuple(args.providers.split(",")), intra_op_threads=args.intra_op_threads)
     except ValueError as err:  # ConfigError names the key
         parser.error(f"--cpu-affinity {args.cpu_affinity!r} / --intra-op-threads {args.intra_op_threads}: {err}")
     return args
@@ -153,8 +153,8 @@ async def fly_episode(args: argparse.Namespace, summary: dict, signals: StopSign
         goal_enu_m = state.home_enu_m + args.goal_rel_home
         result = await _fly_with_faults(loop, policy, args.inject, goal_enu_m, args.timeout_s, summary)
         summary.update(result.summary())
-        log.info("episode %s in %.2f s (%d frames, final distance %.2f m)", result.outcome, result.time_s,
-                 result.frames, result.final_distance_m)  # fmt: skip
+        log.info("episode %s in %.2f s (%d steps, final distance %.2f m)", result.outcome, result.time_s,
+                 result.steps, result.final_distance_m)  # fmt: skip
         return result
 
     async def refused(result: EpisodeResult, t_request_ns: int) -> None:

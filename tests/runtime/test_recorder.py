@@ -17,7 +17,7 @@ from mcap_protobuf.decoder import DecoderFactory
 from runtime.camera import Frame
 from runtime.config import RecorderConfig
 from runtime.contract import action_to_mavsdk, action_to_velocity_flu
-from runtime.model import StepOutput
+from runtime.model import ModelOutput
 from runtime.policy_step import StepInputs, StepResult
 from runtime.log.topics import (
     TOPIC_ACTION, TOPIC_COMMAND, TOPIC_DEPTH, TOPIC_GRAY, TOPIC_LATENT, TOPIC_OBSERVATION, TOPIC_STATE,
@@ -55,7 +55,7 @@ def _log_one_step(rec: Recorder, seq: int, t_ns: int) -> None:
         angvel_body_flu_rad_s=np.zeros(3), goal_enu_m=np.array([9.0, 2.0, 3.0]), hidden=np.zeros(8, np.float32),
         prev_action=np.zeros(3, np.float32), hidden_epoch=1,
     )  # fmt: skip
-    output = StepOutput(action=action, hidden_next=np.zeros(8, np.float32), latent=np.ones(64, np.float32))
+    output = ModelOutput(action=action, hidden_next=np.zeros(8, np.float32), latent=np.ones(64, np.float32))
     rec.log_step(frame, StepResult(inputs, np.arange(15, dtype=np.float32), output, np.clip(action, -1, 1), 0, 0, 0))
     clean = np.array([0.5, 0.1, -0.2])
     rec.log_command(t_ns, frame, action_to_velocity_flu(clean), action_to_mavsdk(clean), "policy", True)

@@ -170,7 +170,7 @@ def test_pilot_leaving_offboard_stops_the_loop(mission, tmp_path):
     assert result.outcome == "aborted" and result.abort_reason == "pilot_left_offboard", result
     (trip,) = result.watchdog_trips
     assert trip["response"] == "stop_commanding" and trip["detect_ms"] < 500
-    assert result.frames >= 5
+    assert result.steps >= 5
     assert vehicle.setpoints_sent == sent_at_end  # nothing sent after the takeover
     assert vehicle.state().flight_mode == MODE_HOLD
 

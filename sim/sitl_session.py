@@ -44,9 +44,8 @@ from runtime.service.paths import directory_problem
 
 from .episode_args import check_level_seed
 from .fault_report import fault_records, runtime_trip_after, vehicle_failsafe_trip
-from .follower.pose_link import AutopilotUrlError, parse_autopilot_url
+from .follower.url import AutopilotUrlError, parse_autopilot_url
 from .plot import plot_top_view
-from .tracking import flight_tracking_error
 
 log = logging.getLogger(__name__)
 
@@ -417,6 +416,8 @@ def merge_summary(
     if request.runtime_cpus or request.vehicle_cpus:
         summary["pinning"] = {"runtime_cpus": flight.get("cpu_affinity"), "vehicle_cpus": list(request.vehicle_cpus),
                               "runtime_intra_op_threads": request.runtime_threads}  # fmt: skip
+    from .tracking import flight_tracking_error  # reads the MCAP log: mcap and the recorder's topics, which only SITL needs
+
     summary["tracking_error_m_s"] = flight_tracking_error(flight.get("log"), trace)
     if request.autopilot_url is not None:
         summary["autopilot"] = request.autopilot_url

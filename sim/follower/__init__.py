@@ -5,19 +5,9 @@
 places the room at its home and heading once it is armable, renders and serves the camera at
 the followed pose, and judges contact, geofence, goal and timeout (``cmnav sitl --autopilot``
 runs it with the runtime).
+
+The package's modules: ``url`` (the --autopilot URL, no MAVLink), ``pose_link`` (the MAVLink pose
+stream), ``placement`` (room and goal at the autopilot's home and heading), ``judge`` (contact,
+geofence, goal, timeout) and ``follower`` (the process).  Nothing is imported here, so that the URL
+check stays importable where pymavlink is absent.
 """
-
-from .follower import FollowerConfig, FollowerNotReadyError, WorldFollower
-from .placement import AutopilotPose, Placement, place_room
-from .pose_link import AutopilotUrlError, parse_autopilot_url
-
-__all__ = [
-    "AutopilotPose",
-    "AutopilotUrlError",
-    "FollowerConfig",
-    "FollowerNotReadyError",
-    "Placement",
-    "WorldFollower",
-    "parse_autopilot_url",
-    "place_room",
-]

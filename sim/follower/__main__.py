@@ -4,16 +4,15 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
-import threading
 from pathlib import Path
 
 from sim.sitl.camera_server import CameraPortError
-from sim.sitl.vehicle import DEGRADATIONS, limit_torch_threads
+from sim.sitl.vehicle import DEGRADATIONS, start_world_process
 
 from .follower import FollowerConfig, FollowerNotReadyError, WorldFollower
-from .pose_link import AutopilotLinkError, AutopilotUrlError, parse_autopilot_url
+from .pose_link import AutopilotLinkError
+from .url import AutopilotUrlError, parse_autopilot_url
 
 log = logging.getLogger("sim.follower")
 
@@ -54,17 +53,8 @@ def parse_args(argv: list[str] | None = None) -> FollowerConfig:
 
 
 def main(argv: list[str] | None = None) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     config = parse_args(argv)
-    limit_torch_threads()
-    stop = threading.Event()
-
-    def on_signal(signum: int, _frame) -> None:
-        log.info("%s received: shutting down", signal.Signals(signum).name)
-        stop.set()
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
+    stop = start_world_process()
     try:
         follower = WorldFollower(config)
     except (CameraPortError, AutopilotLinkError) as err:

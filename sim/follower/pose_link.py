@@ -3,7 +3,7 @@
 from its first HEARTBEAT, asks it for the pose at POSE_RATE_HZ (SET_MESSAGE_INTERVAL) and
 home (REQUEST_MESSAGE), and keeps the latest of what it reports.
 
-Loopback only unless told otherwise: :func:`parse_autopilot_url` refuses a host other than
+Loopback only unless told otherwise: :func:`sim.follower.url.parse_autopilot_url` refuses a host other than
 127.0.0.1 without ``allow_remote``.
 """
 
@@ -14,7 +14,6 @@ import math
 import socket
 import time
 from dataclasses import dataclass, field
-from urllib.parse import urlsplit
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
@@ -26,7 +25,6 @@ from .placement import AutopilotPose
 
 log = logging.getLogger(__name__)
 
-LOOPBACK = "127.0.0.1"
 POSE_RATE_HZ = 50.0
 # Our identity on the link: the companion's system id, a component of its own.
 SYSTEM_ID = 1
@@ -34,35 +32,6 @@ COMPONENT_ID = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER2
 AUTOPILOT_COMPONENT_ID = mavlink.MAV_COMP_ID_AUTOPILOT1
 REQUEST_RETRY_S = 1.0
 HEARTBEAT_PERIOD_S = 1.0
-URL_SCHEMES = ("udp", "udpin")
-
-
-class AutopilotUrlError(ValueError):
-    """An --autopilot URL this follower cannot or will not use."""
-
-
-def parse_autopilot_url(url: str, allow_remote: bool = False) -> tuple[str, int]:
-    """``udp://HOST:PORT`` (or ``udpin://``): the local address to listen on for the
-    autopilot's pose link -> (host, port).  A host other than 127.0.0.1 is refused unless
-    ``allow_remote`` (a real bench setup)."""
-    parts = urlsplit(url)
-    if parts.scheme not in URL_SCHEMES or not parts.hostname or parts.path not in ("", "/"):
-        raise AutopilotUrlError(
-            f"--autopilot {url!r}: expected udp://HOST:PORT, the address the autopilot's MAVLink stream arrives at "
-            f"(PX4 SITL's GCS link: udp://127.0.0.1:14550)"
-        )
-    try:
-        port = parts.port
-    except ValueError as err:
-        raise AutopilotUrlError(f"--autopilot {url!r}: bad port ({err})") from err
-    if port is None or not 0 < port < 65536:
-        raise AutopilotUrlError(f"--autopilot {url!r}: needs a port in 1..65535, e.g. udp://127.0.0.1:14550")
-    if parts.hostname != LOOPBACK and not allow_remote:
-        raise AutopilotUrlError(
-            f"--autopilot {url!r}: host {parts.hostname} is not {LOOPBACK}; this SITL setup stays on loopback. "
-            f"Use udp://{LOOPBACK}:{port}, or pass --allow-remote for an autopilot on another machine"
-        )
-    return parts.hostname, port
 
 
 class AutopilotLinkError(OSError):

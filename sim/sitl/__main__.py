@@ -4,15 +4,13 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
-import threading
 from pathlib import Path
 
 from runtime.faults.catalogue import FaultSite, parse_injection
 
 from .camera_server import CameraPortError
-from .vehicle import SitlConfig, SitlVehicle, limit_torch_threads
+from .vehicle import SitlConfig, SitlVehicle, start_world_process
 
 log = logging.getLogger("sim.sitl")
 
@@ -63,17 +61,8 @@ def parse_args(argv: list[str] | None = None) -> SitlConfig:
 
 
 def main(argv: list[str] | None = None) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     config = parse_args(argv)
-    limit_torch_threads()
-    stop = threading.Event()
-
-    def on_signal(signum: int, _frame) -> None:
-        log.info("%s received: shutting down", signal.Signals(signum).name)
-        stop.set()
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
+    stop = start_world_process()
     try:
         vehicle = SitlVehicle(config)
     except CameraPortError as err:

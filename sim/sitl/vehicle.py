@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import math
 import select
+import signal
 import threading
 import time
 from dataclasses import dataclass
@@ -254,7 +255,18 @@ class SitlVehicle:
             write_json_atomic(self._config.status_json, {"mode_log": [[t, m] for t, m in self._commander.mode_log]})
 
 
-def limit_torch_threads() -> None:
-    """One intra-op thread: the vehicle shares two cores with the runtime, and a 212x120 render
-    or a batch-1 dynamics step gains nothing from more."""
+def start_world_process() -> threading.Event:
+    """What a camera-world process (our vehicle, the follower) does first: log to stderr, one
+    intra-op torch thread (it shares two cores with the runtime, and a 212x120 render or a batch-1
+    dynamics step gains nothing from more), and SIGTERM/SIGINT set the returned event."""
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     torch.set_num_threads(1)
+    stop = threading.Event()
+
+    def on_signal(signum: int, _frame) -> None:
+        log.info("%s received: shutting down", signal.Signals(signum).name)
+        stop.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    return stop

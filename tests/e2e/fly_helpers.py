@@ -233,6 +233,16 @@ class Pilot:
             time.sleep(0.2)
         raise AssertionError(f"{what} not accepted within {timeout_s} s")
 
+    def arm_and_take_off(self, takeoff_alt_m: float) -> None:
+        """Arm, take off, and wait for the climb to end in Hold (as a pilot does before offboard)."""
+        self.command_until_accepted(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [1.0], 20.0, "arm")
+        self.command_until_accepted(mavlink.MAV_CMD_NAV_TAKEOFF, [float("nan")] * 7, 5.0, "takeoff")
+        self.wait(lambda: self.in_hold() and self.height_m > 0.9 * takeoff_alt_m, 30.0, "takeoff done, Hold")
+
+    def switch_to_offboard(self) -> None:
+        self.command_until_accepted(mavlink.MAV_CMD_DO_SET_MODE, [mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 6.0, 0.0],
+                                    5.0, "switch to offboard")  # fmt: skip
+
     def in_hold(self) -> bool:
         mode = self.heartbeat.custom_mode if self.heartbeat else 0
         return (mode >> 16) & 0xFF == PX4_MAIN_MODE_AUTO and (mode >> 24) & 0xFF == PX4_SUB_MODE_LOITER

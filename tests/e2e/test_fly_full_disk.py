@@ -15,7 +15,6 @@ import socket
 from pathlib import Path
 
 import pytest
-from pymavlink.dialects.v20 import common as mavlink
 
 from export.goal_seeker import export_goal_seeker
 from sim.sitl_session import free_port
@@ -102,12 +101,8 @@ def test_full_disk_answers_the_pilots_switch_to_offboard_with_hold(goal_seeker, 
         proc = start_fly(tmp_path, config, notify, file_size_limit_bytes=NOTHING_FITS)
         assert notify.ready.wait(READY_TIMEOUT_S), "no READY"
         pilot.wait(lambda: pilot.heartbeat is not None, 10.0, "vehicle heartbeat")
-        pilot.command_until_accepted(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [1.0], 20.0, "arm")
-        pilot.command_until_accepted(mavlink.MAV_CMD_NAV_TAKEOFF, [float("nan")] * 7, 5.0, "takeoff")
-        takeoff_alt_m = sitl.episode["takeoff_alt_m"]
-        pilot.wait(lambda: pilot.in_hold() and pilot.height_m > 0.9 * takeoff_alt_m, 30.0, "takeoff done, Hold")
-        pilot.command_until_accepted(mavlink.MAV_CMD_DO_SET_MODE, [mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 6.0, 0.0],
-                                     5.0, "switch to offboard")  # fmt: skip
+        pilot.arm_and_take_off(sitl.episode["takeoff_alt_m"])
+        pilot.switch_to_offboard()
         code, summary = finish_fly(proc, tmp_path)
         pilot.wait(pilot.in_hold, 10.0, "Hold commanded by the runtime")
     finally:

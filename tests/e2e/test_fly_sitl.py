@@ -98,15 +98,11 @@ def test_pilot_mode_waits_for_the_pilot_then_flies(goal_seeker, tmp_path):
         assert notify.ready.wait(READY_TIMEOUT_S), f"no READY:\n{(tmp_path / 'fly.log').read_text()[-3000:]}"
         pilot.wait(lambda: pilot.heartbeat is not None, 10.0, "vehicle heartbeat")
         assert not pilot.heartbeat.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED  # the runtime did not arm
-        pilot.command_until_accepted(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [1.0], 20.0, "arm")
-        pilot.command_until_accepted(mavlink.MAV_CMD_NAV_TAKEOFF, [float("nan")] * 7, 5.0, "takeoff")
-        takeoff_alt_m = sitl.episode["takeoff_alt_m"]
-        pilot.wait(lambda: pilot.in_hold() and pilot.height_m > 0.9 * takeoff_alt_m, 30.0, "takeoff done, Hold")
+        pilot.arm_and_take_off(sitl.episode["takeoff_alt_m"])
         assert proc.poll() is None
         assert any("waiting for the pilot" in m for m in notify.messages)
         # Accepted only because the runtime streams setpoints while it waits (PX4's rule).
-        pilot.command_until_accepted(mavlink.MAV_CMD_DO_SET_MODE, [mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 6.0, 0.0],
-                                     5.0, "switch to offboard")  # fmt: skip
+        pilot.switch_to_offboard()
         code, summary = finish_fly(proc, tmp_path)
         pilot.wait(pilot.in_hold, 10.0, "Hold after the episode")
     finally:

@@ -153,11 +153,18 @@ def test_a_vehicle_that_follows_like_px4_never_trips(actions, lag_s, gain, drift
 
 
 @settings(max_examples=100, deadline=None)
-@given(actions=_actions, stuck_at_s=st.floats(0.0, 6.0), stop_sharp=st.booleans())
-def test_a_vehicle_that_stops_following_trips_after_the_window(actions, stuck_at_s, stop_sharp):
-    """Commanded at least 1 m/s (the goal-seeker's cruise) and stopped from ``stuck_at_s``: the trip
-    comes after the window (never before: until then it followed exactly) and within the time the
-    reference needs to pass the bound, plus the window."""
+@given(
+    cruise=st.tuples(st.floats(-1, 1), st.floats(-1, 1)),
+    turns=st.lists(st.tuples(st.floats(-1, 1), st.integers(1, 15)), min_size=1, max_size=60),
+    stuck_at_s=st.floats(0.0, 6.0),
+)
+def test_a_vehicle_that_stops_following_trips_after_the_window(cruise, turns, stuck_at_s):
+    """Commanded a steady cruise of at least 1 m/s (the goal-seeker's) while turning at any yaw
+    rate, and stopped from ``stuck_at_s``: the trip comes after the window (never before: until
+    then it followed exactly) and within the time the reference needs to pass the bound, plus the
+    window.  (A command that reverses its direction would let the lagged reference pass through
+    zero and start its rise again: no bound holds for that, so the speed and inclination are held.)"""
+    actions = [(*cruise, yaw_rate, periods) for yaw_rate, periods in turns]
 
     def follow(vel, target, dt):  # the monitor's own model: zero error until stuck
         return target + (vel - target) * math.exp(-dt / CFG.tracking_lag_s)

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from sim.follower import FollowerConfig, FollowerNotReadyError, WorldFollower
+from sim.follower.follower import FollowerConfig, FollowerNotReadyError, WorldFollower
 from sim.follower.__main__ import parse_args
 
 BASE = ["--autopilot", "udp://127.0.0.1:14550", "--camera-port", "5600", "--level", "1", "--seed", "3",

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from sim.follower.pose_link import POSE_RATE_HZ, AutopilotUrlError, PoseLink, parse_autopilot_url
+from sim.follower.pose_link import POSE_RATE_HZ, PoseLink
+from sim.follower.url import AutopilotUrlError, parse_autopilot_url
 from sim.sitl.px4 import HOLD, OFFBOARD
 
 LOOPBACK = "127.0.0.1"

@@ -21,7 +21,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from runtime.camera.sim_wire import HEADER, decode_header, decode_payload, payload_size
 from sim.camera import CameraModel
-from sim.follower import FollowerConfig, WorldFollower
+from sim.follower.follower import FollowerConfig, WorldFollower
 from sim.sitl.airframe import Airframe
 from sim.sitl.camera_feed import CameraFeed
 from sim.sitl.flight_tasks import VelocityCommand

@@ -219,3 +219,11 @@ def test_a_planted_cycle_fails_unless_typing_only(tmp_path):
     assert layering_violations(_plant(tmp_path / "cycle", cycle)) == ["import cycle: runtime.contract <-> runtime.model"]
     typing_only = {**CLEAN, "runtime/contract.py": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from . import model\nLIMIT = 1\n"}
     assert layering_violations(_plant(tmp_path / "typing", typing_only)) == []
+
+
+def test_runtime_top_level_holds_the_loop_and_its_parts_only():
+    """runtime/ is grouped by role (docs/architecture.md): at most 12 modules at its top level; the
+    log, process plumbing, programs and fault injection live in their folders."""
+    top = sorted(p.stem for p in (ROOT / "runtime").glob("*.py") if p.name != "__init__.py")
+    assert len(top) <= 12, top
+    assert {"log", "service", "programs", "faults", "camera", "contract"} <= {p.name for p in (ROOT / "runtime").iterdir() if p.is_dir()}

@@ -490,7 +490,7 @@ def read_step_timing(log_path: Path) -> dict[str, list[float]]:
     """Per-step stage times (ms) from a flight log's /timing channel: stage -> [ms per step]."""
     from mcap.reader import make_reader
 
-    from runtime.recorder import TOPIC_TIMING
+    from runtime.log.topics import TOPIC_TIMING
 
     stages: dict[str, list[float]] = {}
     with open(log_path, "rb") as f:

@@ -4,6 +4,8 @@ so `cmnav --help` and the runtime's commands never pay for torch."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import importlib
 import logging
 import sys
 
@@ -17,7 +19,7 @@ def _cmd_sitl(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from runtime.paths import output_file_problem
+    from runtime.service.paths import output_file_problem
 
     if (problem := output_file_problem(args.output)) is not None:
         print(f"cmnav export goal-seeker: -o {args.output}: {problem}", file=sys.stderr)
@@ -36,14 +38,14 @@ def _cmd_export_policy(args: argparse.Namespace) -> int:
     if missing:
         print(f"cmnav export: {', '.join(missing)} required (or `cmnav export goal-seeker -o PATH`)", file=sys.stderr)
         return 2
-    from runtime.paths import output_file_problem
+    from runtime.service.paths import output_file_problem
 
     if (problem := output_file_problem(args.model_out)) is not None:
         print(f"cmnav export: -o {args.model_out}: {problem}", file=sys.stderr)
         return 2
     from export.policy_onnx import ExportError, VariantRefusedError, export_policy
     from runtime.contract import ContractMismatchError
-    from runtime.log_reader import ReplayError
+    from runtime.log.reader import ReplayError
     from runtime.model import ModelLoadError
 
     variants = tuple(v for v in args.variants.split(",") if v) if args.variants else ()
@@ -67,48 +69,102 @@ def _cmd_export_policy(args: argparse.Namespace) -> int:
 def _cmd_dataset(args: argparse.Namespace) -> int:
     from training.data.generate import DatasetSpec, generate_dataset
 
-    spec = DatasetSpec(count=args.count, seed=args.seed, levels=tuple(args.levels), frames_per_room=args.frames_per_room)
+    levels = {} if args.levels is None else {"levels": tuple(args.levels)}
+    spec = DatasetSpec(count=args.count, seed=args.seed, **levels, **_given(args, "frames_per_room"))
     manifest = generate_dataset(args.out, spec)
     print(f"wrote {manifest['frames']} gray/depth pairs from {manifest['rooms']} rooms to {args.out} (TartanAir V1 layout)")
     return 0
 
 
-def _given(args: argparse.Namespace, *names: str) -> dict:
-    """The options among ``names`` given on the command line (they default to None, so that the
-    config dataclass keeps the one default)."""
-    return {name: getattr(args, name) for name in names if getattr(args, name) is not None}
+def _given(args: argparse.Namespace, *names: str, **renamed: str) -> dict:
+    """The options among ``names`` (and ``field=option`` in ``renamed``) given on the command line,
+    keyed by the config field: they default to None, so that the config dataclass keeps the one
+    default (see :func:`_config_option`)."""
+    pairs = [(name, name) for name in names] + list(renamed.items())
+    return {field: getattr(args, option) for field, option in pairs if getattr(args, option) is not None}
+
+
+def _field_default(field: str) -> object:
+    """The default of a config dataclass field named ``module:Class.field``."""
+    where, _, name = field.rpartition(".")
+    module, _, cls = where.partition(":")
+    config = getattr(importlib.import_module(module), cls)
+    found = next(f for f in dataclasses.fields(config) if f.name == name)
+    return found.default_factory() if found.default is dataclasses.MISSING else found.default
+
+
+def _shown(value: object) -> str:
+    """A default as the option takes it on the command line (a tuple as a comma-separated list)."""
+    return ",".join(str(v) for v in value) if isinstance(value, (tuple, list)) else str(value)
+
+
+def _config_option(command: argparse.ArgumentParser, flag: str, *fields: str, help: str, **kwargs) -> None:
+    """An option whose default lives in the config dataclass field(s) it sets (``module:Class.field``):
+    it defaults to None (the command passes it on only when given, :func:`_given`), and ``--help``
+    shows the field's default (:class:`_ConfigDefaultsFormatter`), read when the help is printed,
+    so that building the parser imports no training module (``cmnav fly`` never loads torch)."""
+    action = command.add_argument(flag, default=None, help=help, **kwargs)
+    action.config_fields = fields
+
+
+class _ConfigDefaultsFormatter(argparse.HelpFormatter):
+    """Appends ``(default X)`` from the config dataclasses to each :func:`_config_option`'s help."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = super()._get_help_string(action)
+        fields = getattr(action, "config_fields", ())
+        if not fields:
+            return text
+        shown = list(dict.fromkeys(_shown(_field_default(field)) for field in fields))
+        if len(shown) == 1:
+            default = f"default {shown[0]}"
+        else:
+            default = "defaults " + ", ".join(f"{field.rpartition('.')[0].partition(':')[2]} {_shown(_field_default(field))}"
+                                              for field in fields)  # fmt: skip
+        return f"{text} ({default.replace('%', '%%')})"  # the help is a %-format string (argparse's %(default)s)
+
+
+def _name_tuple(text: str) -> tuple[str, ...]:
+    return tuple(x for x in text.split(",") if x)
+
+
+def _use_formatter(parser: argparse.ArgumentParser, formatter: type[argparse.HelpFormatter]) -> None:
+    """``formatter`` for ``parser`` and every subcommand's parser under it."""
+    parser.formatter_class = formatter
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for subparser in action.choices.values():
+                _use_formatter(subparser, formatter)
 
 
 def _cmd_train_cmwae(args: argparse.Namespace) -> int:
     from training.cmwae.train import CmwaeTrainConfig, train_cmwae
 
     config = CmwaeTrainConfig(
-        data_dir=args.data, out_dir=args.out, scheme=args.scheme, modalities=tuple(args.modalities.split(",")),
-        size=args.size, steps=args.steps, epochs=args.epochs if args.steps is None else None,
-        batch_size=args.batch_size, lr=args.lr, lr_final=args.lr_final, mmd_weight=args.mmd_weight, seed=args.seed,
-        device=args.device, workers=args.workers, checkpoint_every=args.checkpoint_every, resume=args.resume,
-        max_wall_s=None if args.minutes is None else args.minutes * 60.0, init_from=args.init_from,
-        **_given(args, "precision", "corrupted_loss_weight"),
+        data_dir=args.data, out_dir=args.out, steps=args.steps, epochs=args.epochs if args.steps is None else None,
+        lr_final=args.lr_final, resume=args.resume, max_wall_s=None if args.minutes is None else args.minutes * 60.0,
+        init_from=args.init_from,
+        **_given(args, "scheme", "modalities", "size", "batch_size", "lr", "mmd_weight", "seed", "device", "workers",
+                 "checkpoint_every", "precision", "corrupted_loss_weight"),
     )  # fmt: skip
     out = train_cmwae(config)
     print(f"checkpoint in {out}")
     return 0
 
 
-def _policy_train_config(args: argparse.Namespace, encoder_dir: str | None, corruption: str):
+def _policy_train_config(args: argparse.Namespace, encoder_dir: str | None, corruption: str | None):
     from training.policy.env import CurriculumConfig
     from training.policy.network import POLICY_SIZES
     from training.policy.ppo import PpoConfig
     from training.policy.train import PolicyTrainConfig
 
     return PolicyTrainConfig(
-        encoder_dir=encoder_dir, out_dir=args.out, env_steps=args.steps, num_envs=args.envs, device=args.device,
-        seed=args.seed, corruption=corruption, policy=POLICY_SIZES[args.size],
-        ppo=PpoConfig(rollout_steps=args.rollout, minibatches=args.minibatches, lr=args.lr),
-        curriculum=CurriculumConfig(start_level=args.start_level, max_level=args.max_level,
-                                    window_episodes=args.curriculum_window),
-        checkpoint_every=args.checkpoint_every, resume=args.resume, init_from=args.init_from,
-        max_wall_s=None if args.minutes is None else args.minutes * 60.0, **_given(args, "precision"),
+        encoder_dir=encoder_dir, out_dir=args.out, env_steps=args.steps, policy=POLICY_SIZES[args.size],
+        **({} if corruption is None else {"corruption": corruption}),
+        ppo=PpoConfig(**_given(args, "minibatches", "lr", rollout_steps="rollout")),
+        curriculum=CurriculumConfig(**_given(args, "start_level", "max_level", window_episodes="curriculum_window")),
+        resume=args.resume, init_from=args.init_from, max_wall_s=None if args.minutes is None else args.minutes * 60.0,
+        **_given(args, "device", "seed", "checkpoint_every", "precision", num_envs="envs"),
     )  # fmt: skip
 
 
@@ -130,12 +186,11 @@ def _train_student(args: argparse.Namespace) -> int:
         print("cmnav train policy: --init-from is for PPO fine-tuning, not with --teacher", file=sys.stderr)
         return 2
     config = DaggerConfig(
-        teacher_dir=args.teacher, encoder_dir=args.encoder, out_dir=args.out, env_steps=args.steps, num_envs=args.envs,
-        device=args.device, seed=args.seed, corruption=args.corruption, policy=POLICY_SIZES[args.size],
-        rollout_steps=args.rollout, minibatches=args.minibatches, max_level=args.max_level,
-        checkpoint_every=args.checkpoint_every, resume=args.resume,
+        teacher_dir=args.teacher, encoder_dir=args.encoder, out_dir=args.out, env_steps=args.steps,
+        policy=POLICY_SIZES[args.size], resume=args.resume,
         max_wall_s=None if args.minutes is None else args.minutes * 60.0,
-        **_given(args, "precision", "beta_decay_env_steps", "projector_off_episode_fraction"),
+        **_given(args, "device", "seed", "corruption", "minibatches", "max_level", "checkpoint_every", "precision",
+                 "beta_decay_env_steps", "projector_off_episode_fraction", num_envs="envs", rollout_steps="rollout"),
     )  # fmt: skip
     out = train_dagger(config)
     print(f"student checkpoint in {out}")
@@ -156,9 +211,8 @@ def _cmd_eval_cmwae(args: argparse.Namespace) -> int:
     from training.cmwae.evaluate import CmwaeEvalConfig, evaluate_cmwae
 
     result = evaluate_cmwae(
-        CmwaeEvalConfig(checkpoint=args.checkpoint, data_dir=args.data, split=args.split, out_dir=args.out,
-                        device=args.device, max_images=args.max_images, seed=args.seed,
-                        **_given(args, "precision"),
+        CmwaeEvalConfig(checkpoint=args.checkpoint, data_dir=args.data, out_dir=args.out, max_images=args.max_images,
+                        **_given(args, "split", "device", "seed", "precision"),
                         **({} if args.patch_sides is None else {"patch_sides_px": args.patch_sides}))  # fmt: skip
     )
     print(result["table"])
@@ -176,9 +230,8 @@ def _cmd_eval_policy(args: argparse.Namespace) -> int:
     from training.policy.evaluate import PolicyEvalConfig, evaluate_policy, format_table2
 
     config = PolicyEvalConfig(
-        policy_dir=args.policy, encoder_dir=args.encoder, levels=tuple(args.levels), conditions=tuple(args.conditions),
-        episodes=args.episodes, batch_envs=args.batch_envs, device=args.device, seed=args.seed, out_dir=args.out,
-        **_given(args, "precision"),
+        policy_dir=args.policy, encoder_dir=args.encoder, out_dir=args.out,
+        **_given(args, "levels", "conditions", "episodes", "batch_envs", "device", "seed", "precision"),
     )  # fmt: skip
     result = evaluate_policy(config)
     print(format_table2(result))
@@ -189,13 +242,12 @@ def _cmd_eval_policy(args: argparse.Namespace) -> int:
 
 
 def _cmd_pipeline(args: argparse.Namespace) -> int:
-    from training.pipeline import PipelineConfig, run_pipeline
+    from cmnav.pipeline import PipelineConfig, run_pipeline
 
     config = PipelineConfig(
-        out_dir=args.out, minutes=args.minutes, device=args.device, seed=args.seed, dataset_count=args.dataset_count,
-        dataset=args.dataset, encoder_size=args.encoder_size, encoder_batch_size=args.encoder_batch_size,
-        policy_size=args.policy_size, envs=args.envs, teacher_envs=args.teacher_envs, eval_episodes=args.eval_episodes, eval_levels=tuple(args.eval_levels),
-        call_minutes=args.call_minutes,
+        out_dir=args.out, minutes=args.minutes, dataset=args.dataset, call_minutes=args.call_minutes,
+        **_given(args, "device", "seed", "dataset_count", "encoder_size", "encoder_batch_size", "policy_size", "envs",
+                 "teacher_envs", "eval_episodes", "eval_levels"),
     )  # fmt: skip
     summary = run_pipeline(config, sys.argv[1:])
     if not summary["done"]:
@@ -253,7 +305,7 @@ def _cmd_bench_runtime(args: argparse.Namespace) -> int:
 
 
 def _cmd_fly(args: argparse.Namespace) -> int:
-    from runtime.fly import run_fly
+    from runtime.programs.fly import run_fly
 
     return run_fly(args.config, print_json=args.json, check_only=args.check)
 
@@ -261,7 +313,7 @@ def _cmd_fly(args: argparse.Namespace) -> int:
 def _cmd_replay(args: argparse.Namespace) -> int:
     import json
 
-    from runtime.replay import ReplayError, replay_log
+    from runtime.programs.replay import ReplayError, replay_log
 
     try:
         report = replay_log(args.log, args.model)
@@ -355,9 +407,9 @@ def build_parser() -> argparse.ArgumentParser:
     dataset.add_argument("--out", required=True, help="output directory")
     dataset.add_argument("--count", type=int, required=True, help="number of pairs")
     dataset.add_argument("--seed", type=int, default=0, help="seed of rooms, poses and camera jitter")
-    dataset.add_argument("--levels", type=int, nargs="+", default=[0, 2, 5, 10, 15, 20],
-                         help="curriculum levels (obstacle counts), cycled over rooms")  # fmt: skip
-    dataset.add_argument("--frames-per-room", type=int, default=16, help="views per room (default 16)")
+    _config_option(dataset, "--levels", "training.data.generate:DatasetSpec.levels", type=int, nargs="+",
+                   help="curriculum levels (obstacle counts), cycled over rooms")  # fmt: skip
+    _config_option(dataset, "--frames-per-room", "training.data.generate:DatasetSpec.frames_per_room", type=int, help="views per room")
     dataset.set_defaults(func=_cmd_dataset)
 
     def add_precision(command: argparse.ArgumentParser) -> None:
@@ -374,46 +426,60 @@ def build_parser() -> argparse.ArgumentParser:
         "Multi-GPU: `torchrun --nproc_per_node=N -m cmnav train cmwae ... --device cuda`.",
     )
     cmwae.add_argument("--data", required=True, help="dataset directory")
-    cmwae.add_argument("--scheme", choices=["s1", "s2", "none"], default="s2", help="training corruption (none: the clean-depth baseline)")
+    _config_option(cmwae, "--scheme", "training.cmwae.train:CmwaeTrainConfig.scheme", choices=["s1", "s2", "none"],
+                   help="training corruption (none: the clean-depth baseline)")
     cmwae.add_argument("--out", required=True, help="checkpoint directory (model.json + fp16 shards + train state)")
-    cmwae.add_argument("--modalities", default="gray,depth", choices=["gray,depth", "depth"], metavar="{gray,depth | depth}",
-                       help="encoder inputs; 'depth' = the depth-only baseline (DCE-RL stand-in)")  # fmt: skip
-    cmwae.add_argument("--size", default="paper", choices=["paper", "small", "tiny"], help="network width (paper = AlexNet)")
+    _config_option(cmwae, "--modalities", "training.cmwae.train:CmwaeTrainConfig.modalities", type=_name_tuple,
+                   choices=[("gray", "depth"), ("depth",)], metavar="{gray,depth | depth}",
+                   help="encoder inputs; 'depth' = the depth-only baseline (DCE-RL stand-in)")  # fmt: skip
+    _config_option(cmwae, "--size", "training.cmwae.train:CmwaeTrainConfig.size", choices=["paper", "small", "tiny"], help="network width (paper = AlexNet)")
     length = cmwae.add_mutually_exclusive_group()
     length.add_argument("--steps", type=int, help="optimizer steps")
     length.add_argument("--epochs", type=int, default=10, help="epochs over the train split (default 10)")
-    cmwae.add_argument("--batch-size", type=int, default=64)
-    cmwae.add_argument("--lr", type=float, default=1e-4, help="Adam learning rate (also applied on --resume)")
+    _config_option(cmwae, "--batch-size", "training.cmwae.train:CmwaeTrainConfig.batch_size", type=int, help="pairs per optimizer step")
+    _config_option(cmwae, "--lr", "training.cmwae.train:CmwaeTrainConfig.lr", type=float, help="Adam learning rate (also applied on --resume)")
     cmwae.add_argument("--lr-final", type=float,
                        help="cosine-decay the learning rate from --lr at step 0 to this at the last step (default: constant)")  # fmt: skip
-    cmwae.add_argument("--mmd-weight", type=float, default=10.0, help="lambda of the MMD term")
-    cmwae.add_argument("--seed", type=int, default=0)
-    cmwae.add_argument("--device", default="cpu", help="cpu or cuda")
-    cmwae.add_argument("--workers", type=int, default=2, help="data-loading processes")
-    cmwae.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints")
+    _config_option(cmwae, "--mmd-weight", "training.cmwae.train:CmwaeTrainConfig.mmd_weight", type=float, help="lambda of the MMD term")
+    _config_option(cmwae, "--seed", "training.cmwae.train:CmwaeTrainConfig.seed", type=int, help="random seed")
+    _config_option(cmwae, "--device", "training.cmwae.train:CmwaeTrainConfig.device", help="cpu or cuda")
+    _config_option(cmwae, "--workers", "training.cmwae.train:CmwaeTrainConfig.workers", type=int, help="data-loading processes")
+    _config_option(cmwae, "--checkpoint-every", "training.cmwae.train:CmwaeTrainConfig.checkpoint_every", type=int, help="steps between checkpoints")
     cmwae.add_argument("--resume", action="store_true", help="continue from the train state in --out")
     cmwae.add_argument("--minutes", type=float, help="stop (with a checkpoint) after this wall-clock time")
-    cmwae.add_argument("--corrupted-loss-weight", type=float,
-                       help="weight of a corrupted image's reconstruction error against a pristine one's (default 1: the paper's mean)")  # fmt: skip
+    _config_option(cmwae, "--corrupted-loss-weight", "training.cmwae.train:CmwaeTrainConfig.corrupted_loss_weight", type=float,
+                   help="weight of a corrupted image's reconstruction error against a pristine one's (1: the paper's mean)")  # fmt: skip
     cmwae.add_argument("--init-from", metavar="CMWAE_DIR", help="start from this encoder checkpoint's weights (not its optimizer or step)")
     add_precision(cmwae)
     cmwae.set_defaults(func=_cmd_train_cmwae)
 
-    def add_ppo_options(command: argparse.ArgumentParser, envs: int) -> None:
+    def add_ppo_options(command: argparse.ArgumentParser, student: bool, envs: int | None = None) -> None:
+        """The options of `train policy` (PPO, or DAgger with --teacher: ``student``) and `train teacher`;
+        ``envs``: the command's own default number of envs (None: the config's)."""
+        dagger = ("training.policy.dagger:DaggerConfig",) if student else ()
         command.add_argument("--out", required=True, help="checkpoint directory (model.json + fp16 shards + train state)")
         command.add_argument("--steps", type=int, default=1_000_000, help="env steps in total (default 1e6)")
         command.add_argument("--minutes", type=float, help="stop (with a checkpoint) after this wall-clock time")
-        command.add_argument("--envs", type=int, default=envs, help=f"envs per process (default {envs})")
-        command.add_argument("--device", default="cpu", help="cpu or cuda")
-        command.add_argument("--seed", type=int, default=0)
+        if envs is None:
+            _config_option(command, "--envs", "training.policy.train:PolicyTrainConfig.num_envs", *[f"{c}.num_envs" for c in dagger], type=int,
+                           help="envs per process")  # fmt: skip
+        else:
+            command.add_argument("--envs", type=int, default=envs, help=f"envs per process (default {envs})")
+        _config_option(command, "--device", "training.policy.train:PolicyTrainConfig.device", *[f"{c}.device" for c in dagger], help="cpu or cuda")
+        _config_option(command, "--seed", "training.policy.train:PolicyTrainConfig.seed", *[f"{c}.seed" for c in dagger], type=int, help="random seed")
         command.add_argument("--size", choices=["paper", "tiny"], default="paper", help="policy width (paper: FC 256-128-64, GRU 64)")
-        command.add_argument("--rollout", type=int, default=32, help="steps per PPO rollout (default 32)")
-        command.add_argument("--minibatches", type=int, default=4, help="PPO minibatches per epoch, split over envs")
-        command.add_argument("--lr", type=float, default=3e-4)
-        command.add_argument("--start-level", type=int, default=0, help="curriculum start level (obstacles)")
-        command.add_argument("--max-level", type=int, default=20, help="curriculum cap")
-        command.add_argument("--curriculum-window", type=int, default=256, help="episodes per curriculum decision")
-        command.add_argument("--checkpoint-every", type=int, default=20, help="PPO iterations between checkpoints")
+        _config_option(command, "--rollout", "training.policy.ppo:PpoConfig.rollout_steps", *[f"{c}.rollout_steps" for c in dagger], type=int,
+                       help="steps per rollout")  # fmt: skip
+        _config_option(command, "--minibatches", "training.policy.ppo:PpoConfig.minibatches", *[f"{c}.minibatches" for c in dagger], type=int,
+                       help="PPO minibatches per epoch, split over envs")  # fmt: skip
+        _config_option(command, "--lr", "training.policy.ppo:PpoConfig.lr", type=float, help="PPO learning rate")
+        _config_option(command, "--start-level", "training.policy.env:CurriculumConfig.start_level", type=int, help="curriculum start level (obstacles)")
+        _config_option(command, "--max-level", "training.policy.env:CurriculumConfig.max_level", *[f"{c}.max_level" for c in dagger], type=int,
+                       help="curriculum cap")  # fmt: skip
+        _config_option(command, "--curriculum-window", "training.policy.env:CurriculumConfig.window_episodes", type=int,
+                       help="episodes per curriculum decision")  # fmt: skip
+        _config_option(command, "--checkpoint-every", "training.policy.train:PolicyTrainConfig.checkpoint_every", *[f"{c}.checkpoint_every" for c in dagger],
+                       type=int, help="iterations between checkpoints")  # fmt: skip
         command.add_argument("--resume", action="store_true", help="continue from the train state in --out")
 
     policy = train_sub.add_parser(
@@ -425,9 +491,10 @@ def build_parser() -> argparse.ArgumentParser:
         "`torchrun --nproc_per_node=N -m cmnav train policy ... --device cuda`.",
     )
     policy.add_argument("--encoder", required=True, help="encoder checkpoint directory (cmnav train cmwae)")
-    add_ppo_options(policy, envs=64)
-    policy.add_argument("--corruption", choices=["train", "none"], default="train",
-                        help="depth corruption during training (none: the depth-only baseline policy)")  # fmt: skip
+    add_ppo_options(policy, student=True)
+    _config_option(policy, "--corruption", "training.policy.train:PolicyTrainConfig.corruption",
+                   "training.policy.dagger:DaggerConfig.corruption", choices=["train", "none"],
+                   help="depth corruption during training (none: the depth-only baseline policy)")  # fmt: skip
     policy.add_argument("--init-from", metavar="POLICY_DIR",
                         help="start from this policy checkpoint (fine-tuning); when it was trained on another encoder, "
                         "its latent normalisation is re-estimated on --encoder")  # fmt: skip
@@ -435,10 +502,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="distil this privileged teacher (cmnav train teacher) by DAgger instead of PPO: the student "
                         "flies a teacher/student mixture, the teacher labels every state it visits; the student's depth is "
                         "corrupted (--corruption), the teacher's is clean")  # fmt: skip
-    policy.add_argument("--beta-decay-env-steps", type=int,
-                        help="DAgger: env steps over which the teacher's share of the actions falls from 1 to 0 (default 3e5)")
-    policy.add_argument("--projector-off-episode-fraction", type=float,
-                        help="DAgger: share of episodes whose depth is lost like a D455 without its projector (default 0.15)")
+    _config_option(policy, "--beta-decay-env-steps", "training.policy.dagger:DaggerConfig.beta_decay_env_steps", type=int,
+                   help="DAgger: env steps over which the teacher's share of the actions falls from 1 to 0")
+    _config_option(policy, "--projector-off-episode-fraction", "training.policy.dagger:DaggerConfig.projector_off_episode_fraction", type=float,
+                   help="DAgger: share of episodes whose depth is lost like a D455 without its projector")
     add_precision(policy)
     policy.set_defaults(func=_cmd_train_policy)
 
@@ -450,7 +517,7 @@ def build_parser() -> argparse.ArgumentParser:
         "values and clean depth of the camera's field of view ray cast at 64x36 and min-pooled to 32x18, so no "
         "224 image is rendered and no encoder runs.  It never flies: `cmnav train policy --teacher DIR` distils it.",
     )
-    add_ppo_options(teacher, envs=1024)
+    add_ppo_options(teacher, student=False, envs=1024)
     teacher.add_argument("--init-from", metavar="TEACHER_DIR", help="start from this teacher checkpoint")
     teacher.set_defaults(func=_cmd_train_teacher, precision=None)
 
@@ -467,11 +534,11 @@ def build_parser() -> argparse.ArgumentParser:
     eval_cmwae = eval_sub.add_parser("cmwae", help="Table I: MSE/SSIM at 0-50%% evaluation corruption on the held-out split")
     eval_cmwae.add_argument("--checkpoint", required=True, help="checkpoint directory")
     eval_cmwae.add_argument("--data", required=True, help="dataset directory")
-    eval_cmwae.add_argument("--split", default="test", choices=["train", "val", "test"])
+    _config_option(eval_cmwae, "--split", "training.cmwae.evaluate:CmwaeEvalConfig.split", choices=["train", "val", "test"], help="dataset split")
     eval_cmwae.add_argument("--out", help="directory for plots and table1.json (default CHECKPOINT/eval)")
-    eval_cmwae.add_argument("--device", default="cpu")
+    _config_option(eval_cmwae, "--device", "training.cmwae.evaluate:CmwaeEvalConfig.device", help="cpu or cuda")
     eval_cmwae.add_argument("--max-images", type=int, help="evaluate at most this many images")
-    eval_cmwae.add_argument("--seed", type=int, default=0, help="seed of the evaluation patches")
+    _config_option(eval_cmwae, "--seed", "training.cmwae.evaluate:CmwaeEvalConfig.seed", type=int, help="seed of the evaluation patches")
     eval_cmwae.add_argument("--patch-sides", type=side_range, metavar="MIN-MAX",
                             help="side range of the square patches in px at 224x224 (default 1-50, Table I's; "
                             "100-100: S2's training squares; 1-30: the policy's training patches)")  # fmt: skip
@@ -479,11 +546,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_precision(eval_cmwae)
     eval_cmwae.set_defaults(func=_cmd_eval_cmwae)
 
-    def int_list(text: str) -> list[int]:
-        return [int(x) for x in text.split(",") if x]
-
-    def name_list(text: str) -> list[str]:
-        return [x for x in text.split(",") if x]
+    def int_list(text: str) -> tuple[int, ...]:
+        return tuple(int(x) for x in text.split(",") if x)
 
     eval_policy = eval_sub.add_parser(
         "policy",
@@ -495,13 +559,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     eval_policy.add_argument("--policy", required=True, help="policy checkpoint directory (cmnav train policy)")
     eval_policy.add_argument("--encoder", help="the encoder checkpoint the policy was trained with (none for a teacher)")
-    eval_policy.add_argument("--levels", type=int_list, default=[0, 5, 10, 15, 20], help="comma-separated (default 0,5,10,15,20)")
-    eval_policy.add_argument("--conditions", type=name_list, default=["clean", "corrupted", "projector-off"],
-                             help="comma-separated subset of clean,corrupted,projector-off (default all)")  # fmt: skip
-    eval_policy.add_argument("--episodes", type=int, default=100, help="episodes per cell (default 100)")
-    eval_policy.add_argument("--batch-envs", type=int, default=64, help="episodes flown at once")
-    eval_policy.add_argument("--device", default="cpu")
-    eval_policy.add_argument("--seed", type=int, default=0, help="seed of the rooms")
+    _config_option(eval_policy, "--levels", "training.policy.evaluate:PolicyEvalConfig.levels", type=int_list, help="comma-separated")
+    _config_option(eval_policy, "--conditions", "training.policy.evaluate:PolicyEvalConfig.conditions", type=_name_tuple,
+                   help="comma-separated subset of clean,corrupted,projector-off")  # fmt: skip
+    _config_option(eval_policy, "--episodes", "training.policy.evaluate:PolicyEvalConfig.episodes", type=int, help="episodes per cell")
+    _config_option(eval_policy, "--batch-envs", "training.policy.evaluate:PolicyEvalConfig.batch_envs", type=int, help="episodes flown at once")
+    _config_option(eval_policy, "--device", "training.policy.evaluate:PolicyEvalConfig.device", help="cpu or cuda")
+    _config_option(eval_policy, "--seed", "training.policy.evaluate:PolicyEvalConfig.seed", type=int, help="seed of the rooms")
     eval_policy.add_argument("--out", help="directory for table2.json/.md and plots (default POLICY/eval)")
     eval_policy.add_argument("--json", action="store_true", help="print the result as JSON on the last line")
     add_precision(eval_policy)
@@ -517,17 +581,17 @@ def build_parser() -> argparse.ArgumentParser:
     )
     pipeline.add_argument("--out", required=True, help="output directory")
     pipeline.add_argument("--minutes", type=float, required=True, help="wall-clock budget")
-    pipeline.add_argument("--device", default="cuda", help="cuda (default) or cpu")
-    pipeline.add_argument("--seed", type=int, default=0)
-    pipeline.add_argument("--dataset-count", type=int, default=8000, help="gray/depth pairs to render (default 8000)")
+    _config_option(pipeline, "--device", "cmnav.pipeline:PipelineConfig.device", help="cuda or cpu")
+    _config_option(pipeline, "--seed", "cmnav.pipeline:PipelineConfig.seed", type=int, help="random seed")
+    _config_option(pipeline, "--dataset-count", "cmnav.pipeline:PipelineConfig.dataset_count", type=int, help="gray/depth pairs to render")
     pipeline.add_argument("--dataset", help="use this existing dataset directory instead of rendering one")
-    pipeline.add_argument("--encoder-size", choices=["paper", "small", "tiny"], default="paper")
-    pipeline.add_argument("--encoder-batch-size", type=int, default=64)
-    pipeline.add_argument("--policy-size", choices=["paper", "tiny"], default="paper")
-    pipeline.add_argument("--envs", type=int, default=512, help="the student's (DAgger) envs (default 512)")
-    pipeline.add_argument("--teacher-envs", type=int, default=1024, help="the teacher's (PPO) envs (default 1024)")
-    pipeline.add_argument("--eval-episodes", type=int, default=100, help="Table II episodes per cell (default 100)")
-    pipeline.add_argument("--eval-levels", type=int_list, default=[0, 5, 10, 15, 20], help="Table II levels")
+    _config_option(pipeline, "--encoder-size", "cmnav.pipeline:PipelineConfig.encoder_size", choices=["paper", "small", "tiny"], help="encoder width")
+    _config_option(pipeline, "--encoder-batch-size", "cmnav.pipeline:PipelineConfig.encoder_batch_size", type=int, help="encoder training batch")
+    _config_option(pipeline, "--policy-size", "cmnav.pipeline:PipelineConfig.policy_size", choices=["paper", "tiny"], help="policy width")
+    _config_option(pipeline, "--envs", "cmnav.pipeline:PipelineConfig.envs", type=int, help="the student's (DAgger) envs")
+    _config_option(pipeline, "--teacher-envs", "cmnav.pipeline:PipelineConfig.teacher_envs", type=int, help="the teacher's (PPO) envs")
+    _config_option(pipeline, "--eval-episodes", "cmnav.pipeline:PipelineConfig.eval_episodes", type=int, help="Table II episodes per cell")
+    _config_option(pipeline, "--eval-levels", "cmnav.pipeline:PipelineConfig.eval_levels", type=int_list, help="Table II levels")
     pipeline.add_argument("--call-minutes", type=float,
                           help="stop this call after this long (exit 3); the same command continues the run")  # fmt: skip
     pipeline.set_defaults(func=_cmd_pipeline)
@@ -624,6 +688,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench_train.add_argument("--json", action="store_true", help="print the result as one JSON object instead")
     bench_train.add_argument("--quick", action="store_true", help="a seconds-long smoke run (2 envs, tiny networks)")
     bench_train.set_defaults(func=_cmd_bench_train)
+    _use_formatter(parser, _ConfigDefaultsFormatter)
     return parser
 
 

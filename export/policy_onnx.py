@@ -273,7 +273,7 @@ def set_metadata(model: onnx.ModelProto, metadata: dict[str, str]) -> None:
 
 
 @dataclass
-class StepInputs:
+class ParityInputs:
     """N step inputs, float32: gray, depth [N, 1, 224, 224], state [N, 15], hidden [N, H]; for a
     recorded flight, where its GRU state was reset."""
 
@@ -295,23 +295,23 @@ class StepInputs:
                 c.ONNX_INPUT_STATE: self.state[i : i + 1], c.ONNX_INPUT_HIDDEN: self.hidden[i : i + 1],
             }  # fmt: skip
 
-    def subset(self, rows: slice | np.ndarray, source: str) -> StepInputs:
+    def subset(self, rows: slice | np.ndarray, source: str) -> ParityInputs:
         """The steps ``rows`` (a slice or an index array); a recorded subset starts with a reset
         (its first step has no earlier step in the subset to carry the GRU state from)."""
         resets = None
         if self.resets is not None:
             resets = self.resets[rows].copy()
             resets[:1] = True
-        return StepInputs(self.gray[rows], self.depth[rows], self.state[rows], self.hidden[rows], source, resets)
+        return ParityInputs(self.gray[rows], self.depth[rows], self.state[rows], self.hidden[rows], source, resets)
 
-    def halves(self) -> tuple[StepInputs, StepInputs]:
+    def halves(self) -> tuple[ParityInputs, ParityInputs]:
         """(first half, second half) of the steps."""
         half = max(1, len(self) // 2)
         return (self.subset(slice(0, half), f"{self.source}, first {half}"),
                 self.subset(slice(half, None), f"{self.source}, last {len(self) - half}"))  # fmt: skip
 
 
-def random_inputs(count: int, hidden_size: int, seed: int = 0) -> StepInputs:
+def random_inputs(count: int, hidden_size: int, seed: int = 0) -> ParityInputs:
     """Inputs in the contract's ranges: gray in [0, 1]; depth in [0, 1] with about 20% invalid
     (0) pixels; state: unit goal vector, distance in [0, 1], roll/pitch within 0.3 rad, velocities
     and rates within 2, previous action in [-1, 1]; hidden in (-1, 1) like a GRU's."""
@@ -325,7 +325,7 @@ def random_inputs(count: int, hidden_size: int, seed: int = 0) -> StepInputs:
         rng.uniform(-2.0, 2.0, (count, 6)), rng.uniform(-1.0, 1.0, (count, 3)),
     ], axis=1).astype(np.float32)  # fmt: skip
     hidden = rng.uniform(-0.9, 0.9, (count, hidden_size)).astype(np.float32)
-    return StepInputs(gray, depth, state, hidden, source=f"random (seed {seed})")
+    return ParityInputs(gray, depth, state, hidden, source=f"random (seed {seed})")
 
 
 def _unit_rows(rng: np.random.Generator, count: int) -> np.ndarray:
@@ -337,10 +337,11 @@ def recorded_steps(log_path: str | Path) -> Iterator[tuple[np.ndarray, np.ndarra
     """The policy steps of a flight log (``cmnav fly`` / ``cmnav sitl``) in order: (gray, depth
     [1, 1, 224, 224] through the contract's preprocessing, the recorded 15-value state [1, 15],
     the step's GRU epoch: it changes where the flight reset the hidden state).  Raises
-    :class:`runtime.log_reader.ReplayError` for a file that is not a cmnav flight log or holds no
+    :class:`runtime.log.reader.ReplayError` for a file that is not a cmnav flight log or holds no
     step with its camera frame."""
     from runtime.contract import preprocess_depth, preprocess_gray
-    from runtime.log_reader import FRAME_TOPICS, STEP_TOPICS, FlightLogReader, LoggedFrame, ReplayError
+    from runtime.log.topics import FRAME_TOPICS, STEP_TOPICS
+    from runtime.log.reader import FlightLogReader, LoggedFrame, ReplayError
 
     reader = FlightLogReader(log_path)
     frames: dict[int, LoggedFrame] = {}
@@ -363,7 +364,7 @@ def recorded_steps(log_path: str | Path) -> Iterator[tuple[np.ndarray, np.ndarra
         raise ReplayError(f"{reader.path} holds no policy step with its camera frame")
 
 
-def recorded_inputs(log_path: str | Path, step: RuntimeStep, count: int = RECORDED_SAMPLES) -> StepInputs:
+def recorded_inputs(log_path: str | Path, step: RuntimeStep, count: int = RECORDED_SAMPLES) -> ParityInputs:
     """The first ``count`` policy steps of a flight log (:func:`recorded_steps`) with the GRU state
     carried from step to step by ``step`` (torch), reset where the flight reset it."""
     gray, depth, state, hidden = [], [], [], []
@@ -380,7 +381,7 @@ def recorded_inputs(log_path: str | Path, step: RuntimeStep, count: int = RECORD
             _, h, _ = step(torch.from_numpy(g), torch.from_numpy(d), torch.from_numpy(s), h)
         if len(state) >= count:
             break
-    return StepInputs(
+    return ParityInputs(
         np.concatenate(gray), np.concatenate(depth), np.concatenate(state), np.concatenate(hidden).astype(np.float32),
         source=f"recorded ({len(state)} steps of {Path(log_path)})",
     )  # fmt: skip
@@ -392,7 +393,7 @@ def _log_name(path: str | Path) -> str:
     return f"{path.parent.name}/{path.name}"
 
 
-def flight_inputs(log_path: str | Path, hidden_size: int) -> StepInputs:
+def flight_inputs(log_path: str | Path, hidden_size: int) -> ParityInputs:
     """Every policy step of one flight log (:func:`recorded_steps`), hidden state zero and
     ``resets`` marking the steps where the flight reset it: for :func:`carried_outputs`, where each
     model carries its own GRU state as it would in flight."""
@@ -404,7 +405,7 @@ def flight_inputs(log_path: str | Path, hidden_size: int) -> StepInputs:
         state.append(s)
         resets.append(step_epoch != epoch)
         epoch = step_epoch
-    return StepInputs(
+    return ParityInputs(
         np.concatenate(gray), np.concatenate(depth), np.concatenate(state),
         np.zeros((len(state), hidden_size), dtype=np.float32), source=f"{len(state)} steps of {_log_name(log_path)}",
         resets=np.asarray(resets),
@@ -414,7 +415,7 @@ def flight_inputs(log_path: str | Path, hidden_size: int) -> StepInputs:
 # ---------------------------------------------------------------------------- parity
 
 
-def torch_outputs(step: RuntimeStep, inputs: StepInputs) -> dict[str, np.ndarray]:
+def torch_outputs(step: RuntimeStep, inputs: ParityInputs) -> dict[str, np.ndarray]:
     """The torch step's outputs per sample (batch 1, as the runtime runs), stacked: name -> [N, ...]."""
     out: dict[str, list[np.ndarray]] = {name: [] for name in OUTPUT_NAMES}
     with torch.no_grad():
@@ -425,7 +426,7 @@ def torch_outputs(step: RuntimeStep, inputs: StepInputs) -> dict[str, np.ndarray
     return {name: np.concatenate(v) for name, v in out.items()}
 
 
-def onnx_outputs(session: ort.InferenceSession, inputs: StepInputs) -> dict[str, np.ndarray]:
+def onnx_outputs(session: ort.InferenceSession, inputs: ParityInputs) -> dict[str, np.ndarray]:
     """An ONNX Runtime session's outputs per sample, stacked: name -> [N, ...]."""
     out: dict[str, list[np.ndarray]] = {name: [] for name in OUTPUT_NAMES}
     for feed in inputs.feeds():
@@ -434,7 +435,7 @@ def onnx_outputs(session: ort.InferenceSession, inputs: StepInputs) -> dict[str,
     return {name: np.concatenate(v) for name, v in out.items()}
 
 
-def carried_outputs(session: ort.InferenceSession, inputs: StepInputs) -> dict[str, np.ndarray]:
+def carried_outputs(session: ort.InferenceSession, inputs: ParityInputs) -> dict[str, np.ndarray]:
     """A session's outputs over a recorded flight as it would fly it: the GRU state it returns
     feeds its next step, and is zeroed where the flight reset it (``inputs.resets``); the
     ``hidden`` of ``inputs`` is not read.  name -> [N, ...]."""
@@ -523,7 +524,7 @@ def make_fp16(model: onnx.ModelProto) -> onnx.ModelProto:
 
 
 def make_int8(
-    fp32_path: str | Path, out_path: str | Path, calibration: StepInputs,
+    fp32_path: str | Path, out_path: str | Path, calibration: ParityInputs,
     op_types: tuple[str, ...] = INT8_OP_TYPES, node_prefixes: tuple[str, ...] = INT8_NODE_PREFIXES,
 ) -> list[str]:  # fmt: skip
     """Static int8 QDQ quantisation of the ``op_types`` nodes whose names start with one of
@@ -559,18 +560,18 @@ def make_int8(
     return nodes
 
 
-def with_carried_hidden(session: ort.InferenceSession, inputs: StepInputs) -> StepInputs:
+def with_carried_hidden(session: ort.InferenceSession, inputs: ParityInputs) -> ParityInputs:
     """``inputs`` (a recorded flight) with the hidden state ``session`` carries into each step."""
     hidden_next = carried_outputs(session, inputs)[c.ONNX_OUTPUT_HIDDEN]
     hidden = np.concatenate([np.zeros_like(hidden_next[:1]), hidden_next[:-1]])
     hidden[inputs.resets] = 0.0
-    return StepInputs(inputs.gray, inputs.depth, inputs.state, hidden, inputs.source, inputs.resets)
+    return ParityInputs(inputs.gray, inputs.depth, inputs.state, hidden, inputs.source, inputs.resets)
 
 
-def concat_inputs(parts: list[StepInputs], source: str) -> StepInputs:
+def concat_inputs(parts: list[ParityInputs], source: str) -> ParityInputs:
     """Several step sets as one (resets kept)."""
     resets = None if any(p.resets is None for p in parts) else np.concatenate([p.resets for p in parts])
-    return StepInputs(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("gray", "depth", "state", "hidden")),
+    return ParityInputs(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("gray", "depth", "state", "hidden")),
                       source=source, resets=resets)  # fmt: skip
 
 
@@ -579,12 +580,12 @@ class RecordedSplit:
     """Recorded flights split for the variants: calibration steps (fp32's GRU state carried into
     them) and the held-out flights, loaded one at a time (:meth:`held_out`)."""
 
-    calibration: StepInputs
+    calibration: ParityInputs
     held_out_logs: list[Path]
-    held_out_part: StepInputs | None = None  # one log: its second half
+    held_out_part: ParityInputs | None = None  # one log: its second half
     description: str = ""
 
-    def held_out(self, hidden_size: int) -> Iterator[StepInputs]:
+    def held_out(self, hidden_size: int) -> Iterator[ParityInputs]:
         if self.held_out_part is not None:
             yield self.held_out_part
         for path in self.held_out_logs:
@@ -616,7 +617,7 @@ def split_recorded(logs: list[Path], session: ort.InferenceSession, hidden_size:
                          f"calibration: {calibration.source}; held out: {len(logs) - n_calibration} flights ({held})")  # fmt: skip
 
 
-def held_out_errors(reference: ort.InferenceSession, sessions: dict[str, ort.InferenceSession], flights: Iterator[StepInputs]) -> dict[str, dict]:
+def held_out_errors(reference: ort.InferenceSession, sessions: dict[str, ort.InferenceSession], flights: Iterator[ParityInputs]) -> dict[str, dict]:
     """Each session against ``reference`` over recorded ``flights``, every model carrying its own
     GRU state (:func:`carried_outputs`): variant -> {steps, flights, max_abs_error, mean_abs_error,
     fp32_max_abs} (per output)."""

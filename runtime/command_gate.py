@@ -16,7 +16,7 @@ from .contract import HOVER, VelocityBodyYawspeed
 log = logging.getLogger(__name__)
 
 
-class Commander(Protocol):
+class CommandedVehicle(Protocol):
     """What the gate needs from the vehicle (``runtime.vehicle.Vehicle`` implements it)."""
 
     async def set_velocity_body(self, cmd: VelocityBodyYawspeed) -> None: ...
@@ -27,7 +27,7 @@ class Commander(Protocol):
 class CommandGate:
     """Serialises commands; closed to the policy until :meth:`open_for_policy`."""
 
-    def __init__(self, vehicle: Commander) -> None:
+    def __init__(self, vehicle: CommandedVehicle) -> None:
         self._vehicle = vehicle
         self._lock = asyncio.Lock()
         self._policy_open = False

@@ -18,9 +18,8 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .camera.realsense import RealSenseConfig
 from .contract import CONTROL_PERIOD_S, ActionLimits
-from .contract.constants import MAX_INCLINATION_RAD, MAX_SPEED_M_S
+from .contract.constants import CAMERA_HEIGHT_PX, CAMERA_RATE_HZ, CAMERA_WIDTH_PX, MAX_INCLINATION_RAD, MAX_SPEED_M_S
 
 
 class ConfigError(ValueError):
@@ -248,7 +247,7 @@ class TensorRtConfig:
 
 
 @dataclass(frozen=True)
-class PolicyConfig:
+class PolicyModelConfig:
     """The ONNX model, where it runs, and the deployment's action limits."""
 
     model_path: Path = Path("model.onnx")
@@ -327,6 +326,35 @@ class RecorderConfig:
         _within("recorder.queue_size", self.queue_size, 8, 4096, "records", "memory the writer may fall behind by")
         _within("recorder.max_logs", self.max_logs, 1, 100_000, "logs", "a directory listing that stays quick")
         _within("recorder.max_total_gb", self.max_total_gb, 0.0, 100_000.0, "GB", "a disk")
+
+
+# D455 modes with both depth and color at 15 fps and (within 1 %) the contract's 848:480 aspect.
+D455_MODES = ((848, 480), (424, 240), (1280, 720), (640, 360), (480, 270))
+FRAME_TIMEOUT_MAX_MS = 5000  # a longer wait hides a dead camera from the start-up checks
+
+
+@dataclass(frozen=True)
+class RealSenseConfig:
+    """D455 stream settings (the ``[camera.realsense]`` table of the runtime config)."""
+
+    width_px: int = CAMERA_WIDTH_PX
+    height_px: int = CAMERA_HEIGHT_PX
+    fps: int = int(CAMERA_RATE_HZ)
+    emitter_enabled: bool = True  # IR projector; off = the paper's degraded-depth condition
+    serial: str | None = None  # None = the first device found
+    frame_timeout_ms: int = 1000
+
+    def __post_init__(self) -> None:
+        if self.fps != int(CAMERA_RATE_HZ):
+            raise ValueError(f"camera.realsense.fps={self.fps!r} is invalid: must be {int(CAMERA_RATE_HZ)} (the policy runs at the camera rate)")
+        if (self.width_px, self.height_px) not in D455_MODES:
+            modes = ", ".join(f"{w}x{h}" for w, h in D455_MODES)
+            raise ValueError(
+                f"camera.realsense.width_px x height_px = {self.width_px}x{self.height_px} is invalid: must be a D455 "
+                f"mode (depth and color at 15 fps) with the contract's aspect {CAMERA_WIDTH_PX}:{CAMERA_HEIGHT_PX}: {modes}"
+            )
+        if not 0 < self.frame_timeout_ms <= FRAME_TIMEOUT_MAX_MS:
+            raise ValueError(f"camera.realsense.frame_timeout_ms={self.frame_timeout_ms!r} is invalid: must be in (0, {FRAME_TIMEOUT_MAX_MS}] ms")
 
 
 @dataclass(frozen=True)
@@ -451,7 +479,7 @@ class SystemdConfig:
 class RuntimeConfig:
     """Everything the flight loop needs besides the contract."""
 
-    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    policy: PolicyModelConfig = field(default_factory=PolicyModelConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     watchdog: WatchdogConfig = field(default_factory=WatchdogConfig)
     recorder: RecorderConfig = field(default_factory=RecorderConfig)

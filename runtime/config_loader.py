@@ -1,6 +1,6 @@
 """``load_config(path)``: the TOML file of ``cmnav fly`` -> :class:`runtime.config.RuntimeConfig`.
 
-Each TOML table is one dataclass of ``runtime.config`` (``[policy]`` -> ``PolicyConfig``,
+Each TOML table is one dataclass of ``runtime.config`` (``[policy]`` -> ``PolicyModelConfig``,
 ``[policy.limits]`` -> ``runtime.contract.ActionLimits``, ...) and each key one of its fields, so
 the defaults stay in the dataclasses.  Everything is checked before anything talks to the
 vehicle: an unknown key, a value of the wrong type, a value out of range, limits looser than the
@@ -20,7 +20,7 @@ from typing import Any
 
 from .config import ConfigError, RuntimeConfig
 from .contract import LimitError
-from .paths import directory_problem
+from .service.paths import directory_problem
 
 if sys.version_info >= (3, 11):
     import tomllib

@@ -22,6 +22,7 @@ watchdog trip or the pilot taking over.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -32,7 +33,7 @@ import numpy as np
 
 from .camera import CameraSource, Frame
 from .camera.validate import FrameValidator
-from .command_gate import Commander, CommandGate
+from .command_gate import CommandedVehicle, CommandGate
 from .config import RuntimeConfig
 from .contract import (
     CONTROL_PERIOD_S,
@@ -44,12 +45,12 @@ from .contract import (
     velocity_flu_to_mavsdk,
 )
 from .contract.constants import GOAL_REACHED_RADIUS_M
+from .log.recorder import Recorder
 from .model import PolicyModel
 from .policy_step import PolicyMemory, StepResult, compute_step
-from .recorder import Recorder
 from .slots import LatestSlot
+from .state import VehicleError, VehicleState
 from .timing import StageTimes
-from .vehicle import VehicleError, VehicleState
 from .watchdog import TripCause, WatchInputs, Watchdog
 
 log = logging.getLogger(__name__)
@@ -60,7 +61,7 @@ STATE_LOG_PERIOD_S = 0.1
 ALIVE_SLEEP_SLICE_S = 0.1  # how often on_alive is called while the loop sleeps on purpose
 
 
-class VehicleLink(Commander, Protocol):
+class VehicleLink(CommandedVehicle, Protocol):
     """What the loop needs from the vehicle (``runtime.vehicle.Vehicle`` implements it)."""
 
     def state(self) -> VehicleState: ...
@@ -73,7 +74,7 @@ class EpisodeResult:
     outcome: str  # "success" | "timeout" | "aborted"
     abort_reason: str | None
     time_s: float  # to the goal (success) or to the end
-    frames: int  # policy steps run
+    steps: int  # policy steps run (the summary's "frames")
     frames_received: int  # by the camera task since FlightLoop.start
     missed_deadlines: int
     bad_frames: int
@@ -83,6 +84,12 @@ class EpisodeResult:
     final_distance_m: float = float("nan")
     frames_rejected: int = 0  # unfit camera frames since FlightLoop.start (runtime.camera.validate)
     tracking_error_peak_m_s: float = 0.0  # the largest tracking error sustained a whole window (runtime.tracking)
+
+    def summary(self) -> dict:
+        """The episode's JSON record: the keys of an episode in ``cmnav fly``'s summary and of the
+        SITL flight's summary (``steps`` keeps its published key, ``frames``)."""
+        record = dataclasses.asdict(self)
+        return {("frames" if key == "steps" else key): value for key, value in record.items()}
 
 
 class FlightLoop:
@@ -433,7 +440,7 @@ class FlightLoop:
             outcome=episode.outcome or "aborted",
             abort_reason=episode.abort_reason,
             time_s=round(((episode.t_end_ns or time.monotonic_ns()) - episode.t0_ns) / _NS_PER_S, 3),
-            frames=episode.steps,
+            steps=episode.steps,
             frames_received=self.frames_received,
             missed_deadlines=episode.missed_deadlines,
             bad_frames=episode.bad_frames,

@@ -66,7 +66,7 @@ class ProviderUnavailableError(ModelLoadError):
 
 
 @dataclass(frozen=True)
-class StepOutput:
+class ModelOutput:
     """One policy step: raw action (3,), next GRU state (H,), CMWAE latent (64,), all float32."""
 
     action: np.ndarray
@@ -168,7 +168,7 @@ class PolicyModel:
         """The GRU state at reset: zeros (H,), float32."""
         return np.zeros(self.hidden_size, dtype=np.float32)
 
-    def step(self, gray: np.ndarray, depth: np.ndarray, state: np.ndarray, hidden: np.ndarray) -> StepOutput:
+    def step(self, gray: np.ndarray, depth: np.ndarray, state: np.ndarray, hidden: np.ndarray) -> ModelOutput:
         """One policy step.
 
         ``gray``, ``depth``: (224, 224) float32 from ``runtime.contract.images``; ``state``: (15,)
@@ -182,7 +182,7 @@ class PolicyModel:
             c.ONNX_INPUT_HIDDEN: _as_input(hidden, (self.hidden_size,), "hidden").reshape(1, self.hidden_size),
         }
         action, hidden_next, latent = self._session.run(self._output_names, feeds)
-        return StepOutput(action=action[0], hidden_next=hidden_next[0], latent=latent[0])
+        return ModelOutput(action=action[0], hidden_next=hidden_next[0], latent=latent[0])
 
 
 

@@ -20,8 +20,8 @@ import numpy as np
 from .camera.frame import Frame
 from .contract import clip_action, observation_state, preprocess_depth, preprocess_gray
 from .contract.constants import ACTION_DIM
-from .model import PolicyModel, StepOutput
-from .vehicle import VehicleState
+from .model import ModelOutput, PolicyModel
+from .state import VehicleState
 
 
 @dataclass(frozen=True)
@@ -53,7 +53,7 @@ class StepResult:
 
     inputs: StepInputs
     observation_state: np.ndarray
-    output: StepOutput
+    output: ModelOutput
     action_clipped: np.ndarray
     t_preprocessed_ns: int
     t_observed_ns: int

@@ -2,7 +2,7 @@
 
 Telemetry (PX4 side: NED world, FRD body) arrives as MAVSDK subscriptions and is kept, with
 its receive time (``time.monotonic_ns``), in a cache; :meth:`Vehicle.state` gives a snapshot on
-the policy side (local ENU world, FLU body) as a :class:`VehicleState`.  Commands wrap MAVSDK's
+the policy side (local ENU world, FLU body) as a :class:`runtime.state.VehicleState`.  Commands wrap MAVSDK's
 Action and Offboard plugins; every await that talks to the autopilot has a timeout and every
 failure raises a :class:`VehicleError` naming the command, the cause and what to check.
 """
@@ -12,7 +12,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from dataclasses import dataclass, field
 from typing import Awaitable, Callable, TypeVar
 
 import numpy as np
@@ -24,96 +23,25 @@ from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 
 from .config import VehicleConfig
 from .contract import HOVER, VelocityBodyYawspeed
-from .contract.frames import euler_from_quat, ned_to_enu, quat_conjugate, quat_ned_frd_to_enu_flu, quat_rotate
-from .shutdown import in_daemon_thread
-from .status_text import StatusText, append_status_text
+from .contract.frames import ned_to_enu, quat_ned_frd_to_enu_flu
+from .service.shutdown import in_daemon_thread
+from .state import (
+    MODE_HOLD,
+    MODE_OFFBOARD,
+    VehicleCommandError,
+    VehicleError,
+    VehicleHealth,
+    VehicleState,
+    VehicleTimeoutError,
+    append_status_text,
+)
 
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
-# MAVSDK's FlightMode names (telemetry.FlightMode) the runtime cares about.
-MODE_OFFBOARD = "OFFBOARD"
-MODE_HOLD = "HOLD"
 # Height tolerance for "takeoff altitude reached" (m): PX4 itself calls a takeoff done within 10%.
 TAKEOFF_ALT_TOLERANCE_FRAC = 0.1
-
-
-class VehicleError(RuntimeError):
-    """Talking to the autopilot failed; the message names the command, the cause and the fix."""
-
-
-class VehicleTimeoutError(VehicleError):
-    """The autopilot did not answer (or a state was not reached) in time."""
-
-
-class VehicleCommandError(VehicleError):
-    """The autopilot (or MAVSDK) refused a command."""
-
-
-@dataclass(frozen=True)
-class VehicleHealth:
-    """The autopilot's pre-flight health flags (MAVSDK ``Telemetry.Health``)."""
-
-    armable: bool = False
-    local_position_ok: bool = False
-    global_position_ok: bool = False
-    home_position_ok: bool = False
-    gyro_ok: bool = False
-    accel_ok: bool = False
-    mag_ok: bool = False
-
-
-@dataclass(frozen=True)
-class VehicleState:
-    """Telemetry snapshot on the policy side.
-
-    Positions are in the autopilot's local frame turned ENU (metres; origin = the local NED
-    origin, *not* necessarily home — use ``home_enu_m``); velocities world ENU (m/s); attitude
-    ``quat_enu_flu`` (w, x, y, z) rotates body FLU into world ENU; ``angvel_body_flu_rad_s`` body
-    FLU.  Every ``t_*_ns`` is the receive time on this host's CLOCK_MONOTONIC, 0 = never received.
-    """
-
-    pos_enu_m: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
-    vel_enu_m_s: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
-    t_posvel_ns: int = 0
-    quat_enu_flu: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0, 0.0]))
-    t_att_ns: int = 0
-    angvel_body_flu_rad_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    t_angvel_ns: int = 0
-    flight_mode: str = "UNKNOWN"
-    t_mode_ns: int = 0
-    armed: bool = False
-    t_armed_ns: int = 0
-    in_air: bool = False
-    landed_state: str = "UNKNOWN"
-    health: VehicleHealth = field(default_factory=VehicleHealth)
-    t_health_ns: int = 0
-    home_enu_m: np.ndarray | None = None
-    status_texts: tuple[StatusText, ...] = ()  # the latest STATUSTEXTs, oldest first (runtime.status_text)
-
-    @property
-    def t_telemetry_ns(self) -> int:
-        """Receive time of the staler of position/velocity and attitude (0 until both arrived)."""
-        return min(self.t_posvel_ns, self.t_att_ns)
-
-    @property
-    def vel_body_flu_m_s(self) -> np.ndarray:
-        """World velocity rotated into body FLU (m/s)."""
-        return quat_rotate(quat_conjugate(self.quat_enu_flu), self.vel_enu_m_s)
-
-    @property
-    def yaw_enu_rad(self) -> float:
-        """Heading, counter-clockwise from east (rad)."""
-        return float(euler_from_quat(self.quat_enu_flu)[2])
-
-    @property
-    def height_above_home_m(self) -> float:
-        """Height above home (m); NaN until home and position are known."""
-        if self.home_enu_m is None:
-            return float("nan")
-        return float(self.pos_enu_m[2] - self.home_enu_m[2])
-
 
 class Vehicle:
     """One autopilot over MAVSDK: telemetry cache and commands with timeouts."""
@@ -156,7 +84,7 @@ class Vehicle:
     async def close(self) -> None:
         """Stop the telemetry subscriptions and release MAVSDK (stops any setpoint re-sending).
 
-        MAVSDK's C teardown runs in a daemon thread: bounded by :func:`runtime.shutdown.close_step`,
+        MAVSDK's C teardown runs in a daemon thread: bounded by :func:`runtime.service.shutdown.close_step`,
         a teardown that never returns cannot keep the process alive after landing."""
         for task in self._tasks:
             task.cancel()

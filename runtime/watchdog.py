@@ -40,7 +40,7 @@ import numpy as np
 from .command_gate import CommandGate
 from .config import WatchdogConfig
 from .tracking import TrackingMonitor, TrackingStatus, tilt_rad
-from .vehicle import MODE_OFFBOARD, VehicleError, VehicleState
+from .state import MODE_OFFBOARD, VehicleError, VehicleState
 
 log = logging.getLogger(__name__)
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from runtime.faults import FaultKind, FaultSite, Injection
+from runtime.faults.catalogue import FaultKind, FaultSite, Injection
 
 # Ground-truth speed below this counts as stopped (m/s): the fault tests' bound.
 STOPPED_SPEED_M_S = 0.2

@@ -2,13 +2,13 @@
 processes over loopback, merged into one summary (JSON), an MCAP log and a top-view plot.
 
 The SITL vehicle (``python -m sim.sitl``) owns ground truth: world, trajectory, collisions,
-invalid-depth fraction of every served frame.  The runtime (``python -m runtime.sitl_flight``)
+invalid-depth fraction of every served frame.  The runtime (``python -m runtime.programs.sitl``)
 owns what it did: outcome as it saw it, step timing, watchdog trips, MCAP log.  A collision in
 the ground truth overrides the runtime's view (a crash is a crash, whatever the runtime thinks): the summary's ``time_s`` is
 then the crash time in ground truth, and ``crash_detect_ms`` how long the runtime took to trip
 on it (its ``tracking`` or ``vehicle_fault`` trip; null if it never did).
 
-Fault injection (``--inject KIND@SECONDS``, ``runtime.faults``): each fault goes to the process
+Fault injection (``--inject KIND@SECONDS``, ``runtime.faults.catalogue``): each fault goes to the process
 where it happens (vehicle or runtime); ``runtime-kill`` is done here, SIGKILL to the runtime's
 PID SECONDS after the vehicle entered OFFBOARD (read from the vehicle's live status file).  When
 a faulted flight does not end in a landing, the vehicle runs FAULT_OBSERVE_S longer, so ground
@@ -38,9 +38,9 @@ import numpy as np
 
 from runtime.contract import ContractMismatchError
 from runtime.contract.constants import GOAL_REACHED_RADIUS_M
-from runtime.faults import FaultKind, FaultSite, Injection, InjectionError, parse_injection
+from runtime.faults.catalogue import FaultKind, FaultSite, Injection, InjectionError, parse_injection
 from runtime.model import ModelLoadError, PolicyModel, check_outputs_finite
-from runtime.paths import directory_problem
+from runtime.service.paths import directory_problem
 
 from .episode_args import check_level_seed
 from .fault_report import fault_records, runtime_trip_after, vehicle_failsafe_trip
@@ -251,7 +251,7 @@ def _run_processes(
                  vehicle.pid, request.level, request.seed, episode["goal_rel_home_enu_m"])  # fmt: skip
         with open(runtime_log, "w") as runtime_out, signals.deferred():
             runtime = subprocess.Popen(
-                [sys.executable, "-m", "runtime.sitl_flight", "--mavlink-port", str(mavlink_port),
+                [sys.executable, "-m", "runtime.programs.sitl", "--mavlink-port", str(mavlink_port),
                  "--camera-port", str(camera_port), "--model", str(request.model_path),
                  "--goal-rel-home=" + ",".join(f"{v:.4f}" for v in episode["goal_rel_home_enu_m"]),  # "=": may start with "-"
                  "--takeoff-alt-m", f"{episode['takeoff_alt_m']:.3f}", "--timeout-s", str(request.timeout_s),

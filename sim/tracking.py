@@ -24,7 +24,7 @@ from mcap.reader import make_reader
 
 from runtime.contract import CONTROL_PERIOD_S
 from runtime.contract.frames import world_enu_to_vehicle
-from runtime.recorder import TOPIC_COMMAND
+from runtime.log.topics import TOPIC_COMMAND
 
 log = logging.getLogger(__name__)
 

@@ -10,14 +10,13 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from dataclasses import dataclass
 from typing import Any, AsyncIterator
 
 import numpy as np
 
-from ..contract import constants as c
+from ..config import RealSenseConfig
 from ..contract.images import gray_from_bgr
-from ..shutdown import in_daemon_thread
+from ..service.shutdown import in_daemon_thread
 from .frame import Frame
 
 log = logging.getLogger(__name__)
@@ -25,35 +24,6 @@ log = logging.getLogger(__name__)
 
 class RealSenseUnavailableError(RuntimeError):
     """pyrealsense2 or the camera cannot be used; the message says what to install or plug in."""
-
-
-# D455 modes with both depth and color at 15 fps and (within 1 %) the contract's 848:480 aspect.
-D455_MODES = ((848, 480), (424, 240), (1280, 720), (640, 360), (480, 270))
-FRAME_TIMEOUT_MAX_MS = 5000  # a longer wait hides a dead camera from the start-up checks
-
-
-@dataclass(frozen=True)
-class RealSenseConfig:
-    """D455 stream settings (the ``[camera.realsense]`` table of the runtime config)."""
-
-    width_px: int = c.CAMERA_WIDTH_PX
-    height_px: int = c.CAMERA_HEIGHT_PX
-    fps: int = int(c.CAMERA_RATE_HZ)
-    emitter_enabled: bool = True  # IR projector; off = the paper's degraded-depth condition
-    serial: str | None = None  # None = the first device found
-    frame_timeout_ms: int = 1000
-
-    def __post_init__(self) -> None:
-        if self.fps != int(c.CAMERA_RATE_HZ):
-            raise ValueError(f"camera.realsense.fps={self.fps!r} is invalid: must be {int(c.CAMERA_RATE_HZ)} (the policy runs at the camera rate)")
-        if (self.width_px, self.height_px) not in D455_MODES:
-            modes = ", ".join(f"{w}x{h}" for w, h in D455_MODES)
-            raise ValueError(
-                f"camera.realsense.width_px x height_px = {self.width_px}x{self.height_px} is invalid: must be a D455 "
-                f"mode (depth and color at 15 fps) with the contract's aspect {c.CAMERA_WIDTH_PX}:{c.CAMERA_HEIGHT_PX}: {modes}"
-            )
-        if not 0 < self.frame_timeout_ms <= FRAME_TIMEOUT_MAX_MS:
-            raise ValueError(f"camera.realsense.frame_timeout_ms={self.frame_timeout_ms!r} is invalid: must be in (0, {FRAME_TIMEOUT_MAX_MS}] ms")
 
 
 def import_pyrealsense2() -> Any:

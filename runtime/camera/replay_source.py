@@ -18,7 +18,8 @@ from pathlib import Path
 from typing import AsyncIterator, Iterator
 
 from ..contract import CONTROL_PERIOD_S
-from ..log_reader import FRAME_TOPICS, FlightLogReader, LoggedFrame, LoggedStep, ReplayError
+from ..log.reader import FlightLogReader, LoggedFrame, LoggedStep, ReplayError
+from ..log.topics import FRAME_TOPICS
 from .frame import Frame
 
 log = logging.getLogger(__name__)
@@ -30,7 +31,7 @@ class ReplayCameraSource:
     """A :class:`runtime.camera.CameraSource` playing back a flight log's frames."""
 
     def __init__(self, path: str | Path) -> None:
-        """``path``: an MCAP flight log written by cmnav; :class:`runtime.log_reader.ReplayError`
+        """``path``: an MCAP flight log written by cmnav; :class:`runtime.log.reader.ReplayError`
         if it is not one (raised here for a non-MCAP file, by :meth:`start` for the rest)."""
         self._reader = FlightLogReader(path)
         self._records: Iterator[LoggedFrame | LoggedStep] | None = None

@@ -64,12 +64,3 @@ def decode_payload(seq: int, t_ns: int, width: int, height: int, payload: bytes)
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
         raise FrameDecodeError(f"frame {seq}: bad meta JSON ({err})") from err
     return Frame(t_capture_ns=t_ns, depth_m=depth, gray_u8=gray, seq=seq, meta=meta)
-
-
-def decode_frame(data: bytes) -> Frame:
-    """Decode one whole message (header + payload)."""
-    seq, t_ns, width, height, meta_len = decode_header(data[: HEADER.size])
-    payload = data[HEADER.size :]
-    if len(payload) != payload_size(width, height, meta_len):
-        raise FrameDecodeError(f"frame {seq}: payload {len(payload)} bytes, expected {payload_size(width, height, meta_len)}")
-    return decode_payload(seq, t_ns, width, height, payload)

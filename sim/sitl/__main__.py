@@ -7,7 +7,7 @@ import logging
 import sys
 from pathlib import Path
 
-from runtime.faults import FaultSite, parse_injection
+from runtime.faults.catalogue import FaultSite, parse_injection
 
 from .camera_server import CameraPortError
 from .vehicle import SitlConfig, SitlVehicle, start_world_process

@@ -1,5 +1,5 @@
 """Faults the SITL vehicle injects on itself (``python -m sim.sitl --inject KIND@SECONDS``), where
-they happen on a real vehicle.  Kinds and syntax: ``runtime.faults``.  Times count from the
+they happen on a real vehicle.  Kinds and syntax: ``runtime.faults.catalogue``.  Times count from the
 vehicle's own first OFFBOARD entry; ``offboard-refused`` (only ``@0``) holds from the start.
 
 - ``camera-stall``: no frame leaves the camera any more (the link stays open and silent).
@@ -34,7 +34,7 @@ import numpy as np
 
 from runtime.camera.frame import Frame
 from runtime.contract.images import invalid_depth_fraction
-from runtime.faults import FaultKind, FaultSite, Injection, InjectionError
+from runtime.faults.catalogue import FaultKind, FaultSite, Injection, InjectionError
 
 log = logging.getLogger(__name__)
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from runtime.faults import FaultKind
+from runtime.faults.catalogue import FaultKind
 from sim.world import WorldBatch
 
 from .camera_server import ServedFrame

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from runtime.camera.frame import Frame
-from runtime.faults import Injection
+from runtime.faults.catalogue import Injection
 from sim.camera import CameraModel
 from sim.degradation import ProjectorOffModel
 from sim.episode_args import check_level_seed

@@ -104,7 +104,8 @@ class MavlinkRouter:
 class Sitl:
     """``python -m sim.sitl`` on free ports, stopped by PID."""
 
-    def __init__(self, tmp: Path, mavlink_port: int, level: int = 0, seed: int = 2) -> None:
+    def __init__(self, tmp: Path, mavlink_port: int, level: int = 0, seed: int = 2, inject: tuple[str, ...] = ()) -> None:
+        """``inject``: the vehicle's faults (``KIND@SECONDS``, ``python -m sim.sitl --inject``)."""
         self.camera_port = free_port(socket.SOCK_STREAM)
         self.log_path = tmp / "sitl.log"
         self.status_path = tmp / "vehicle_status.json"
@@ -114,7 +115,8 @@ class Sitl:
             self.proc = subprocess.Popen(
                 [sys.executable, "-m", "sim.sitl", "--mavlink-port", str(mavlink_port), "--camera-port", str(self.camera_port),
                  "--level", str(level), "--seed", str(seed), "--episode-json", str(episode_path),
-                 "--trace", str(self.trace_path), "--status-json", str(self.status_path)],
+                 "--trace", str(self.trace_path), "--status-json", str(self.status_path),
+                 *[arg for text in inject for arg in ("--inject", text)]],
                 stdout=log_file, stderr=subprocess.STDOUT, cwd=ROOT,
             )  # fmt: skip
         deadline = time.monotonic() + READY_TIMEOUT_S

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from export.goal_seeker import export_goal_seeker
-from runtime.replay import replay_log
+from runtime.programs.replay import replay_log
 from sim.sitl_session import free_port, stop_process
 
 pytestmark = pytest.mark.timeout(300)

@@ -299,7 +299,8 @@ def test_carried_outputs_replay_the_recorded_flight(recorded_logs, tmp_path):
     """A model carrying its own GRU state through a recorded flight (resets where the flight reset
     it) reproduces the actions that flew; without the resets it does not: how the variants are judged."""
     from export.policy_onnx import carried_outputs, cpu_session, flight_inputs
-    from runtime.log_reader import STEP_TOPICS, FlightLogReader
+    from runtime.log.topics import STEP_TOPICS
+    from runtime.log.reader import FlightLogReader
     from tests.runtime.onnx_models import recurrent_step_model, save
 
     session = cpu_session(save(recurrent_step_model(), tmp_path / "recurrent.onnx"))

@@ -1,4 +1,4 @@
-"""Fault injection syntax (runtime.faults) and the runtime's own injected faults (runtime.fault_injection)."""
+"""Fault injection syntax (runtime.faults.catalogue) and the runtime's own injected faults (runtime.faults.injection)."""
 
 import asyncio
 import time
@@ -6,13 +6,13 @@ import time
 import numpy as np
 import pytest
 
-from runtime import fault_injection
+from runtime.faults import injection as fault_injection
 from runtime.command_gate import CommandGate
 from runtime.config import WatchdogConfig
-from runtime.fault_injection import FaultyPolicy, shrink_geofence, shrink_geofence_at
-from runtime.faults import FAULT_SITE, FaultKind, FaultSite, Injection, InjectionError, parse_injection
-from runtime.model import StepOutput
-from runtime.vehicle import VehicleState
+from runtime.faults.injection import FaultyPolicy, shrink_geofence, shrink_geofence_at
+from runtime.faults.catalogue import FAULT_SITE, FaultKind, FaultSite, Injection, InjectionError, parse_injection
+from runtime.model import ModelOutput
+from runtime.state import VehicleState
 from runtime.watchdog import Watchdog
 
 S = 1_000_000_000
@@ -54,7 +54,7 @@ class ConstantModel:
         return np.zeros(4, np.float32)
 
     def step(self, gray, depth, state, hidden):
-        return StepOutput(np.array([0.5, 0.0, 0.1], np.float32), hidden + 1, np.zeros(64, np.float32))
+        return ModelOutput(np.array([0.5, 0.0, 0.1], np.float32), hidden + 1, np.zeros(64, np.float32))
 
 
 def _step(policy):

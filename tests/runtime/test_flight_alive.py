@@ -69,12 +69,12 @@ def test_a_stalled_step_stops_the_pings(tmp_path):
     result, alive = asyncio.run(_fly(model, stall_then_release, config, timeout_s=1.5, stalled=model.stalled))
     assert result.watchdog_trips == []  # the step limit was not reached: only the pings tell
     assert alive.count(False) > STALL_AFTER_STEPS and not any(alive)
-    assert result.frames > STALL_AFTER_STEPS + 1  # it stepped (and pinged) again once released
+    assert result.steps > STALL_AFTER_STEPS + 1  # it stepped (and pinged) again once released
 
 
 def test_the_trip_response_keeps_reporting_alive(tmp_path):
     nan_model = PolicyModel(save(step_model(action_offset=float("nan")), tmp_path / "nan.onnx"))
     config = RuntimeConfig(watchdog=WatchdogConfig(hold_grace_s=0.3))
     result, alive = asyncio.run(_fly(nan_model, None, config, timeout_s=5.0))
-    assert result.frames == 0 and result.watchdog_trips[0]["cause"] == "bad_action"
+    assert result.steps == 0 and result.watchdog_trips[0]["cause"] == "bad_action"
     assert len(alive) > 0  # no step ever completed, yet hovering then Hold counted as alive

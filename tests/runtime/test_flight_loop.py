@@ -14,8 +14,8 @@ from runtime.contract import HOVER, CONTROL_PERIOD_S, mavsdk_to_velocity_flu
 from runtime.contract.frames import quat_from_euler, quat_rotate
 from runtime.flight import FlightLoop
 from runtime.model import PolicyModel
-from runtime.recorder import Recorder
-from runtime.vehicle import VehicleHealth, VehicleState
+from runtime.log.recorder import Recorder
+from runtime.state import VehicleHealth, VehicleState
 from tests.runtime.onnx_models import save, step_model
 
 HOME = np.array([0.0, 0.0, 0.0])
@@ -131,7 +131,7 @@ def test_reaches_goal_then_hover_and_hold(goal_seeker, tmp_path):
     recorder.close()
     assert result.outcome == "success", result
     assert result.final_distance_m < 1.0 and result.watchdog_trips == []
-    assert result.frames > 5 and result.step_ms["p50"] is not None
+    assert result.steps > 5 and result.step_ms["p50"] is not None
     assert set(result.stage_ms) == {"frame_wait", "executor_in", "preprocess", "observation", "inference", "executor_out",
                                     "checks", "send", "command", "step", "frame_age"}
     assert vehicle.yaw > 0.1  # turned left toward the goal

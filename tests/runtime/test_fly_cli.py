@@ -17,7 +17,7 @@ from pathlib import Path
 import onnxruntime as ort
 import pytest
 
-from runtime.fly import run_fly
+from runtime.programs.fly import run_fly
 from tests.runtime.onnx_models import save, step_model
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -1,6 +1,6 @@
 """Flight-log rotation: oldest first, by count and by size, and only the runtime's own files."""
 
-from runtime.log_rotation import LOG_GLOB, new_log_path, rotate_logs
+from runtime.log.rotation import LOG_GLOB, new_log_path, rotate_logs
 
 
 def _logs(tmp_path, sizes: list[int]) -> list:

@@ -15,7 +15,7 @@ import pytest
 from runtime.config import ConfigError, ProcessConfig, TensorRtConfig, variant_path
 from runtime.config_loader import load_config
 from runtime.contract import contract_metadata
-from runtime.fly import FlyError, load_model
+from runtime.programs.fly import FlyError, load_model
 from runtime.model import KEY_VARIANT, ModelLoadError, PolicyModel, session_providers
 from tests.runtime.onnx_models import save, step_model
 
@@ -114,7 +114,7 @@ def test_pin_process_pins_every_thread():
     cpu = ALLOWED[-1]
     code = f"""
 import json, os, threading, time
-from runtime.affinity import pin_process
+from runtime.service.affinity import pin_process
 stop = threading.Event()
 before = threading.Thread(target=stop.wait); before.start()
 pinned = pin_process([{cpu}])

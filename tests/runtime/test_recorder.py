@@ -17,13 +17,14 @@ from mcap_protobuf.decoder import DecoderFactory
 from runtime.camera import Frame
 from runtime.config import RecorderConfig
 from runtime.contract import action_to_mavsdk, action_to_velocity_flu
-from runtime.model import StepOutput
+from runtime.model import ModelOutput
 from runtime.policy_step import StepInputs, StepResult
-from runtime.recorder import (
+from runtime.log.topics import (
     TOPIC_ACTION, TOPIC_COMMAND, TOPIC_DEPTH, TOPIC_GRAY, TOPIC_LATENT, TOPIC_OBSERVATION, TOPIC_STATE,
-    TOPIC_TIMING, TOPIC_WATCHDOG, Recorder, RecorderError,
+    TOPIC_TIMING, TOPIC_WATCHDOG,
 )  # fmt: skip
-from runtime.vehicle import VehicleState
+from runtime.log.recorder import Recorder, RecorderError
+from runtime.state import VehicleState
 
 ALL_TOPICS = {TOPIC_DEPTH, TOPIC_GRAY, TOPIC_STATE, TOPIC_OBSERVATION, TOPIC_ACTION, TOPIC_COMMAND,
               TOPIC_LATENT, TOPIC_TIMING, TOPIC_WATCHDOG}  # fmt: skip
@@ -54,7 +55,7 @@ def _log_one_step(rec: Recorder, seq: int, t_ns: int) -> None:
         angvel_body_flu_rad_s=np.zeros(3), goal_enu_m=np.array([9.0, 2.0, 3.0]), hidden=np.zeros(8, np.float32),
         prev_action=np.zeros(3, np.float32), hidden_epoch=1,
     )  # fmt: skip
-    output = StepOutput(action=action, hidden_next=np.zeros(8, np.float32), latent=np.ones(64, np.float32))
+    output = ModelOutput(action=action, hidden_next=np.zeros(8, np.float32), latent=np.ones(64, np.float32))
     rec.log_step(frame, StepResult(inputs, np.arange(15, dtype=np.float32), output, np.clip(action, -1, 1), 0, 0, 0))
     clean = np.array([0.5, 0.1, -0.2])
     rec.log_command(t_ns, frame, action_to_velocity_flu(clean), action_to_mavsdk(clean), "policy", True)
@@ -120,7 +121,7 @@ WRITER = textwrap.dedent(
     sys.path.insert(0, {tests!r})
     from test_recorder import _log_one_step
     from runtime.config import RecorderConfig
-    from runtime.recorder import Recorder
+    from runtime.log.recorder import Recorder
 
     rec = Recorder(sys.argv[1], RecorderConfig(flush_period_s=0.5))
     rec.log_watchdog(time.monotonic_ns(), {{"event": "start"}})

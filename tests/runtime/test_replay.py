@@ -20,9 +20,9 @@ from runtime.config import RecorderConfig, RuntimeConfig, WatchdogConfig
 from runtime.contract import CONTROL_PERIOD_S
 from runtime.flight import FlightLoop
 from runtime.model import PolicyModel
-from runtime.recorder import Recorder
-from runtime import replay as replay_module
-from runtime.replay import ReplayError, replay_log
+from runtime.log.recorder import Recorder
+from runtime.programs import replay as replay_module
+from runtime.programs.replay import ReplayError, replay_log
 from tests.runtime.onnx_models import recurrent_step_model, save
 from tests.runtime.test_flight_loop import START, KinematicVehicle
 
@@ -86,7 +86,7 @@ def test_same_model_replays_the_recorded_actions(flown):
     model, log_path, results = flown
     report = replay_log(log_path)  # the model path and hash come from the log's metadata
     assert report.model == str(model.resolve()) and report.same_model
-    assert report.steps == sum(r.frames for r in results) > 10
+    assert report.steps == sum(r.steps for r in results) > 10
     assert report.episodes == 2 and report.steps_without_frame == 0 and report.stopped_early is None
     assert report.max_abs_diff <= TOLERANCE and report.mean_abs_diff <= TOLERANCE
     assert report.max_latent_abs_diff <= TOLERANCE

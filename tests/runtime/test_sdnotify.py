@@ -4,7 +4,7 @@ import socket
 
 import pytest
 
-from runtime.sdnotify import SystemdNotifier
+from runtime.service.sdnotify import SystemdNotifier
 
 
 @pytest.fixture

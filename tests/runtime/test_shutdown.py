@@ -12,7 +12,7 @@ import time
 import pytest
 
 from runtime.config import VehicleConfig
-from runtime.shutdown import close_step, in_daemon_thread
+from runtime.service.shutdown import close_step, in_daemon_thread
 from runtime.vehicle import Vehicle
 
 
@@ -29,7 +29,7 @@ class _HungDestroy:
 
 
 def test_hung_and_failing_steps_are_abandoned_and_named(caplog):
-    caplog.set_level(logging.ERROR, logger="runtime.shutdown")
+    caplog.set_level(logging.ERROR, logger="runtime.service.shutdown")
     ran = []
 
     async def hang() -> None:
@@ -84,7 +84,7 @@ def test_process_exits_despite_a_teardown_that_never_returns():
     script = textwrap.dedent(
         """
         import asyncio, threading
-        from runtime.shutdown import close_step, in_daemon_thread
+        from runtime.service.shutdown import close_step, in_daemon_thread
         never = threading.Event()
         async def main():
             done = await close_step("MAVSDK", lambda: in_daemon_thread("mavsdk-destroy", never.wait), 0.5)

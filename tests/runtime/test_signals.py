@@ -7,7 +7,7 @@ import signal
 import subprocess
 import sys
 
-from runtime.signals import cancel_on_stop_signals
+from runtime.service.signals import cancel_on_stop_signals
 
 
 def test_first_signal_cancels_once_and_a_second_does_not_interrupt_the_safe_stop(caplog):
@@ -30,7 +30,7 @@ def test_first_signal_cancels_once_and_a_second_does_not_interrupt_the_safe_stop
 def test_a_signal_after_the_loop_ended_does_not_kill_the_process():
     code = (
         "import asyncio, os, signal\n"
-        "from runtime.signals import cancel_on_stop_signals, ignore_stop_signals\n"
+        "from runtime.service.signals import cancel_on_stop_signals, ignore_stop_signals\n"
         "async def main():\n"
         "    cancel_on_stop_signals()\n"
         "asyncio.run(main())\n"

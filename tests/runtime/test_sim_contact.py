@@ -40,4 +40,4 @@ def test_contact_reported_by_the_world_trips_hover_then_hold(goal_seeker):  # no
     assert trip["response"] == "hover_then_hold" and "obstacle 2" in trip["detail"]
     assert trip["hold_t_s"] == pytest.approx(trip["t_s"] + 0.3, abs=0.1)
     assert vehicle.setpoints[-1] == HOVER and vehicle.holds == 1
-    assert result.frames > 3  # it flew on the frames before the contact
+    assert result.steps > 3  # it flew on the frames before the contact

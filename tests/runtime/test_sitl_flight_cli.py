@@ -1,4 +1,4 @@
-"""``python -m runtime.sitl_flight``: refusals before anything is armed (no vehicle needed)."""
+"""``python -m runtime.programs.sitl``: refusals before anything is armed (no vehicle needed)."""
 
 import json
 import subprocess
@@ -11,7 +11,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def _run(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "runtime.sitl_flight", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "runtime.programs.sitl", *args], capture_output=True, text=True,
                           timeout=60, cwd=ROOT)  # fmt: skip
 
 

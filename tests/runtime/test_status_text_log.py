@@ -8,8 +8,9 @@ from mavsdk.asyncio.plugins.telemetry import StatusTextType
 from mcap.reader import make_reader
 
 from runtime.config import RecorderConfig
-from runtime.recorder import TOPIC_STATUS_TEXT, Recorder
-from runtime.status_text import StatusText
+from runtime.log.topics import TOPIC_STATUS_TEXT
+from runtime.log.recorder import Recorder
+from runtime.state import StatusText
 from runtime.vehicle import Vehicle
 
 

@@ -21,7 +21,8 @@ from runtime.contract import HOVER, action_to_mavsdk
 from runtime.contract.frames import wrap_angle
 from runtime.flight import FlightLoop
 from runtime.model import PolicyModel
-from runtime.vehicle import MODE_HOLD, MODE_OFFBOARD, Vehicle
+from runtime.state import MODE_HOLD, MODE_OFFBOARD
+from runtime.vehicle import Vehicle
 from sim.sitl_session import free_port, stop_process
 
 pytestmark = pytest.mark.timeout(120)
@@ -169,7 +170,7 @@ def test_pilot_leaving_offboard_stops_the_loop(mission, tmp_path):
     assert result.outcome == "aborted" and result.abort_reason == "pilot_left_offboard", result
     (trip,) = result.watchdog_trips
     assert trip["response"] == "stop_commanding" and trip["detect_ms"] < 500
-    assert result.frames >= 5
+    assert result.steps >= 5
     assert vehicle.setpoints_sent == sent_at_end  # nothing sent after the takeover
     assert vehicle.state().flight_mode == MODE_HOLD
 

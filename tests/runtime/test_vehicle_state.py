@@ -9,7 +9,8 @@ from mavsdk.asyncio.plugins.telemetry import (
 )  # fmt: skip
 
 from runtime.contract.frames import quat_enu_flu_to_ned_frd, quat_from_euler
-from runtime.vehicle import VehicleState, _angvel_fields, _attitude_fields, _home_fields, _posvel_fields
+from runtime.state import VehicleState
+from runtime.vehicle import _angvel_fields, _attitude_fields, _home_fields, _posvel_fields
 
 
 def _px4_quaternion(roll_rad: float, pitch_rad: float, yaw_enu_rad: float) -> Quaternion:

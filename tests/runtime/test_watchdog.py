@@ -10,8 +10,8 @@ from runtime.command_gate import CommandGate
 from runtime.config import ConfigError, WatchdogConfig
 from runtime.contract import HOVER, VelocityBodyYawspeed
 from runtime.contract.frames import quat_from_euler
-from runtime.status_text import STATUS_TEXTS_KEPT, StatusText, append_status_text
-from runtime.vehicle import VehicleState
+from runtime.state import STATUS_TEXTS_KEPT, StatusText, append_status_text
+from runtime.state import VehicleState
 from runtime.watchdog import Response, TripCause, WatchInputs, Watchdog
 
 MS = 1_000_000

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from runtime.faults import FaultKind, Injection
+from runtime.faults.catalogue import FaultKind, Injection
 from sim.fault_report import fault_records, vehicle_failsafe_trip
 
 T_OFFBOARD = 100.0

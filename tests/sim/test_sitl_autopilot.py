@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from runtime.faults import parse_injection
+from runtime.faults.catalogue import parse_injection
 from sim.sitl_session import SitlRequest, autopilot_request, merge_summary, run_sitl_cli
 
 from tests.sim.test_sitl_session import EPISODE, FLIGHT, _trace

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from runtime.faults import FaultKind, FaultSite, Injection, parse_injection
+from runtime.faults.catalogue import FaultKind, FaultSite, Injection, parse_injection
 from sim.sitl_session import SitlError, SitlRequest, merge_summary, run_sitl, run_sitl_cli
 
 EPISODE = {

@@ -11,12 +11,8 @@ import numpy as np
 import pytest
 
 from runtime.camera import CameraSource
-from runtime.camera.realsense import (
-    RealSenseConfig,
-    RealSenseSource,
-    RealSenseUnavailableError,
-    import_pyrealsense2,
-)
+from runtime.camera.realsense import RealSenseSource, RealSenseUnavailableError, import_pyrealsense2
+from runtime.config import RealSenseConfig
 from runtime.contract import preprocess_depth, preprocess_gray
 
 DEPTH_SCALE_M = 0.001

@@ -9,8 +9,8 @@ import pytest
 from runtime.camera import CameraSource, Frame
 from runtime.camera.replay_source import ReplayCameraSource
 from runtime.config import RecorderConfig
-from runtime.log_reader import ReplayError
-from runtime.recorder import Recorder
+from runtime.log.reader import ReplayError
+from runtime.log.recorder import Recorder
 
 PERIOD_NS = 66_666_667
 

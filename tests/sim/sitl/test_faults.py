@@ -9,7 +9,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from runtime.camera import Frame
 from runtime.camera.validate import FrameValidator
-from runtime.faults import FaultKind, Injection, InjectionError
+from runtime.faults.catalogue import FaultKind, Injection, InjectionError
 from sim.sitl.commander import ACCEPTED, DENIED, Commander
 from sim.sitl.faults import FUTURE_STAMP_S, VehicleFaults
 from sim.sitl.mavlink_endpoint import MavlinkEndpoint

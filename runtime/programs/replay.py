@@ -23,11 +23,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera.frame import Frame
-from .contract import ContractMismatchError, ImageContractError
-from .log_reader import FRAME_TOPICS, STEP_TOPICS, FlightLogReader, LoggedFrame, LoggedStep, ReplayError
-from .model import ModelLoadError, PolicyModel, check_outputs_finite, file_sha256
-from .policy_step import PolicyMemory, StepInputs, compute_step
+from ..camera.frame import Frame
+from ..contract import ContractMismatchError, ImageContractError
+from ..log.reader import FlightLogReader, LoggedFrame, LoggedStep, ReplayError
+from ..log.topics import FRAME_TOPICS, STEP_TOPICS
+from ..model import ModelLoadError, PolicyModel, check_outputs_finite, file_sha256
+from ..policy_step import PolicyMemory, StepInputs, compute_step
 
 log = logging.getLogger(__name__)
 

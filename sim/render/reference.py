@@ -1,18 +1,13 @@
-"""Ray-cast depth and textured gray images of the worlds in a :class:`~sim.world.WorldBatch`.
-
-Every pixel's ray (see :mod:`sim.camera`) is intersected with the room's six faces (from inside)
-and each valid box (slab test in the box's own frame); the nearest hit gives the depth (z-depth,
-metres, float32) and the gray value: the surface's procedural albedo (:mod:`sim.texture`) times
-Lambertian shading from a fixed light direction plus ambient, rounded to uint8.
+"""The reference ray caster and the batched torch one (the CUDA path of :func:`sim.render.render`).
 
 The camera must be inside the room (every ray then hits a face, so every depth is valid);
 from inside a box, that box is invisible (only faces the ray enters from outside count).
 
 ``render_reference`` is the plain ray caster: loops over envs, room faces and boxes, float64
 geometry, and slab-tests a box only against the rays through its bounding sphere.
-``render`` is the fast path, tested equal to it: on the CPU a numba kernel that slab-tests each
-box only inside its projected screen rectangle (:mod:`sim.render_cpu`); on other devices
-``render_torch``, batched over envs x rays x boxes at once in float32 torch ops.
+``sim.render.render`` is the fast path, tested equal to it: on the CPU a numba kernel that
+slab-tests each box only inside its projected screen rectangle (:mod:`sim.render.cpu`); on other
+devices ``render_torch``, batched over envs x rays x boxes at once in float32 torch ops.
 """
 
 from __future__ import annotations
@@ -24,10 +19,10 @@ import torch
 from torch import Tensor
 from torch.nn.functional import one_hot
 
-from .camera import CameraModel
-from .rotations import quat_rotate, rotate_about_z
-from .texture import box_surface_id, surface_albedo
-from .world import WorldBatch
+from ..camera import CameraModel
+from ..rotations import quat_rotate, rotate_about_z
+from ..texture import box_surface_id, surface_albedo
+from ..world import WorldBatch
 
 # Unit vector towards a sun-like light, high and behind the start (x small): faces turned towards
 # the start (the far wall, box fronts), the floor and the wall at y = 0 are lit; the others
@@ -185,23 +180,6 @@ def render_reference(
     return _output(world, hits, camera)
 
 
-def render(
-    world: WorldBatch, cam_pos_enu_m: Tensor, cam_quat_enu_flu: Tensor, camera: CameraModel
-) -> RenderOutput:
-    """Render depth and gray for camera poses cam_pos_enu_m [B, 3] (m), cam_quat_enu_flu [B, 4]
-    (camera frame C -> world ENU) on the world's device; equal to :func:`render_reference` within
-    DEPTH_REL_TOLERANCE / GRAY_TOLERANCE_LEVELS.  On the CPU the numba kernel of
-    :mod:`sim.render_cpu` (boxes culled to their screen rectangles, as many threads as torch
-    uses), elsewhere :func:`render_torch`."""
-    if world.device.type == "cpu":
-        # Imported here: sim.render_cpu imports this module (and numba, which the torch path
-        # does not need).
-        from .render_cpu import render_cpu
-
-        return render_cpu(world, cam_pos_enu_m, cam_quat_enu_flu, camera)
-    return render_torch(world, cam_pos_enu_m, cam_quat_enu_flu, camera)
-
-
 def render_torch(
     world: WorldBatch,
     cam_pos_enu_m: Tensor,
@@ -210,7 +188,7 @@ def render_torch(
     max_chunk_elements: int = 1 << 24,
 ) -> RenderOutput:
     """Same as :func:`render_reference`, batched over envs x rays x boxes in float32 torch ops on
-    the world's device (the CUDA path of :func:`render`).  Envs are processed in chunks of at most
+    the world's device (the CUDA path of :func:`sim.render.render`).  Envs are processed in chunks of at most
     ``max_chunk_elements`` ray-box pairs to bound memory."""
     rays = _world_rays(cam_quat_enu_flu, camera, torch.float32)
     pairs_per_env = rays.shape[1] * max(world.num_slots, 1)

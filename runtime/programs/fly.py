@@ -12,7 +12,9 @@ a vehicle that was already there.  It then flies an episode toward the goal (rel
 the take-off point; the GRU state resets on entering offboard), commands hover then Hold, and
 waits for the next switch to offboard (``mission.max_episodes``, 0 = until stopped).  If the pilot
 leaves offboard mid-episode the runtime stops commanding at once.  With ``allow_arm_takeoff =
-true`` (SITL dry runs) it arms, takes off, enters offboard itself, flies one episode, lands and exits.
+true`` (SITL dry runs) it flies the episode script (``runtime.programs.episode``, the same as ``cmnav
+sitl``): arms, takes off, enters offboard itself, flies one episode, lands and exits; if the
+autopilot refuses offboard, the refusal is recorded as the episode and the vehicle lands.
 
 One MCAP log per episode in ``recorder.log_dir`` (rotated: ``recorder.max_logs`` /
 ``max_total_gb``).  systemd (``Type=notify``): READY after start-up, a STATUS line per phase, and
@@ -20,7 +22,7 @@ WATCHDOG pings from the flight loop's healthy iterations (and from the waiting p
 event loop runs), so a stalled loop is killed and restarted.
 
 A stop signal (SIGTERM from ``systemctl stop``, SIGINT) at any moment ends in a state the runtime
-commands (``runtime.stop``: in offboard a hover setpoint, then Hold at once; taking off, Hold;
+commands (``runtime.programs.stop``: in offboard a hover setpoint, then Hold at once; taking off, Hold;
 landing goes on), never in the autopilot's offboard-loss failsafe; the summary's ``stop`` records
 the signal, the phase it interrupted, the action and the time.
 
@@ -33,7 +35,6 @@ log directory): the unit's ``RestartPreventExitStatus=2`` keeps systemd from ret
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import json
 import logging
 import os
@@ -43,24 +44,26 @@ from typing import Awaitable, TypeVar
 
 import numpy as np
 
-from .affinity import pin_process
-from .camera import CameraSource
-from .camera.realsense import RealSenseSource, RealSenseUnavailableError
-from .camera.replay_source import ReplayCameraSource
-from .camera.sim_source import SimCameraSource
-from .config import CameraConfig, RuntimeConfig
-from .config_loader import ConfigError, load_config
-from .contract import HOVER, ContractMismatchError
-from .flight import EpisodeResult, FlightLoop
-from .log_reader import ReplayError
-from .log_rotation import new_log_path, rotate_logs
-from .model import ModelLoadError, PolicyModel, check_outputs_finite, resolve_providers
-from .recorder import Recorder, RecorderError
-from .sdnotify import SystemdNotifier
-from .shutdown import close_step, in_daemon_thread
-from .signals import StopSignals, cancel_on_stop_signals, ignore_stop_signals
+from ..camera import CameraSource
+from ..camera.realsense import RealSenseSource, RealSenseUnavailableError
+from ..camera.replay_source import ReplayCameraSource
+from ..camera.sim_source import SimCameraSource
+from ..config import CameraConfig, RuntimeConfig
+from ..config_loader import ConfigError, load_config
+from ..contract import HOVER, ContractMismatchError
+from ..flight import EpisodeResult, FlightLoop
+from ..log.reader import ReplayError
+from ..log.recorder import Recorder, RecorderError
+from ..log.rotation import new_log_path, rotate_logs
+from ..model import ModelLoadError, PolicyModel, check_outputs_finite, resolve_providers
+from ..service.affinity import pin_process
+from ..service.sdnotify import SystemdNotifier
+from ..service.shutdown import close_step, in_daemon_thread
+from ..service.signals import StopSignals, cancel_on_stop_signals, ignore_stop_signals
+from ..state import MODE_OFFBOARD, VehicleError, VehicleState
+from ..vehicle import Vehicle
+from .episode import EpisodeError, EpisodeScript, OffboardWithheld
 from .stop import FlightPhase, Phase, stop_on_signal
-from .vehicle import MODE_OFFBOARD, Vehicle, VehicleError, VehicleState
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +79,7 @@ PILOT_POLL_S = 0.1
 ALIVE_PERIOD_S = 0.25  # how often the waiting phases report the event loop alive
 
 
-class RecorderRefusal(RuntimeError):
+class RecorderRefusal(OffboardWithheld):
     """The flight log cannot be written and ``recorder.required`` is true: no offboard."""
 
 
@@ -120,7 +123,7 @@ class FieldProgram:
         self.config = config
         self.notifier = notifier
         self.summary: dict = {"episodes": [], "logs": [], "error": None, "stop": None, "log_error": None}
-        self.flight = FlightPhase()  # what a stop signal interrupts (runtime.stop)
+        self.flight = FlightPhase()  # what a stop signal interrupts (runtime.programs.stop)
         self.signals: StopSignals | None = None  # set by the entry point
         self._t_start_ns = time.monotonic_ns()
 
@@ -145,10 +148,11 @@ class FieldProgram:
             raise FlyError(EXIT_CONFIG, f"camera.replay.path: {err}") from err
         vehicle = Vehicle(self.config.vehicle)
         loop = FlightLoop(self.config, model, vehicle, camera, recorder=None, on_alive=self.notifier.loop_alive)
+        script = EpisodeScript(vehicle, loop, self.flight, self._status, self._alive_while)
         try:
-            await self._start(vehicle, loop)
+            await self._start(script)
             if self.config.mission.allow_arm_takeoff:
-                return await self._dry_run(vehicle, loop, model)
+                return await self._dry_run(script, model)
             return await self._pilot_episodes(vehicle, loop, model)
         except VehicleError as err:
             raise FlyError(EXIT_FAILED, f"vehicle: {err}") from err
@@ -164,26 +168,17 @@ class FieldProgram:
     # ------------------------------------------------------------------ start-up
 
     async def stop(self, loop: FlightLoop | None, vehicle: Vehicle | None) -> None:
-        """The safe stop after a stop signal, once (``runtime.stop``); records ``summary["stop"]``."""
+        """The safe stop after a stop signal, once (``runtime.programs.stop``); records ``summary["stop"]``."""
         if self.summary["stop"] is not None or self.signals is None:
             return
         self.summary["stop"] = await stop_on_signal(self.signals, self.flight, loop, vehicle, self._t_start_ns)
 
-    async def _start(self, vehicle: Vehicle, loop: FlightLoop) -> None:
-        self._status(f"connecting to the autopilot on {self.config.vehicle.url}")
-        self.flight.enter(Phase.CONNECTING)
-        await self._alive_while(vehicle.connect())
-        await loop.start()
-        self._status("waiting for autopilot health (armable, local position, home)")
-        self.flight.enter(Phase.WAITING_FOR_HEALTH)
-        await self._alive_while(vehicle.wait_ready())
-        self.flight.enter(Phase.WAITING_FOR_CAMERA)
-        self._status(f"waiting for the first {self.config.camera.source} camera frame")
-        timeout_s = self.config.camera.first_frame_timeout_s
+    async def _start(self, script: EpisodeScript) -> None:
         try:
-            await self._alive_while(loop.wait_first_frame(timeout_s))
-        except asyncio.TimeoutError as err:
-            raise FlyError(EXIT_FAILED, f"no {self.config.camera.source} camera frame within {timeout_s} s: is the camera connected and streaming?") from err
+            await script.start(self.config.camera.first_frame_timeout_s, self.config.camera.source,
+                               lambda: "is the camera connected and streaming?")  # fmt: skip
+        except EpisodeError as err:
+            raise FlyError(EXIT_FAILED, str(err)) from err
         self.notifier.ready("started: connected, healthy, camera streaming")
         log.info("started: connected, healthy, camera streaming")
 
@@ -210,41 +205,36 @@ class FieldProgram:
             await self._episode(loop, model, episode, state, recorder)
         return EXIT_OK
 
-    async def _dry_run(self, vehicle: Vehicle, loop: FlightLoop, model: PolicyModel) -> int:
-        """Arm, take off, enter offboard, fly one episode, land (``mission.allow_arm_takeoff``)."""
-        altitude_m = self.config.mission.takeoff_alt_m
-        self._status(f"dry run: arming and taking off to {altitude_m:.2f} m")
-        self.flight.enter(Phase.ARMING)
-        await vehicle.arm()
-        self.flight.enter(Phase.TAKING_OFF)
-        await vehicle.takeoff(altitude_m)
-        await self._alive_while(vehicle.wait_takeoff_done(altitude_m))
-        try:
+    async def _dry_run(self, script: EpisodeScript, model: PolicyModel) -> int:
+        """The episode script (``runtime.programs.episode``): arm, take off, enter offboard, fly one
+        episode, land (``mission.allow_arm_takeoff``)."""
+        loop = script.loop
+        recorder: Recorder | None = None
+
+        def open_log() -> None:  # before offboard: the log records the offboard request too
+            nonlocal recorder
             recorder = self._open_recorder(model, 1)
+            loop.recorder = recorder
+
+        async def refused(result: EpisodeResult, t_request_ns: int) -> None:
+            loop.recorder = None
+            if recorder is not None:
+                await self._close_log(recorder)
+            self._record_episode(result, 1, recorder)
+
+        try:
+            result = await script.dry_run(
+                self.config.mission.takeoff_alt_m,
+                lambda state: self._episode(loop, model, 1, state, recorder),
+                before_offboard=open_log,
+                on_refused=refused,
+            )
         except RecorderRefusal as err:
             self.summary["error"] = f"offboard refused: {err}"
-            log.error("not entering offboard: %s; landing", err)
-            await self._land(vehicle)
             return EXIT_CONFIG
-        self.flight.enter(Phase.ENTERING_OFFBOARD)
-        await vehicle.start_offboard(HOVER)
-        state = await self._alive_while(
-            vehicle.wait_until(lambda s: s.flight_mode == MODE_OFFBOARD, self.config.vehicle.command_timeout_s, "offboard mode")
-        )
-        result = await self._episode(loop, model, 1, state, recorder)
         if loop.watchdog.pilot_took_over:
-            log.warning("the pilot took over: not landing, the vehicle is theirs")
             return EXIT_FAILED
-        await self._land(vehicle)
         return EXIT_OK if result.outcome == "success" else EXIT_FAILED
-
-    async def _land(self, vehicle: Vehicle) -> None:
-        self._status("dry run: landing")
-        self.flight.enter(Phase.LANDING)
-        await vehicle.land()
-        await self._alive_while(vehicle.wait_disarmed())
-        self.flight.enter(Phase.DONE)
-        log.info("landed and disarmed")
 
     async def _wait_for_offboard(self, vehicle: Vehicle, episode: int) -> VehicleState:
         """Stream hover setpoints and wait until the pilot switches *into* offboard, armed and in the air."""
@@ -291,16 +281,15 @@ class FieldProgram:
         finally:
             loop.recorder = None
             if recorder is not None:
-                await close_step("the flight log", lambda: in_daemon_thread("recorder-close", recorder.close))
-                self._record_log(recorder)
+                await self._close_log(recorder)
         self._record_episode(result, episode, recorder)
         log.info("episode %d: %s in %.2f s (%d steps, final distance %.2f m, trips %s)", episode, result.outcome,
-                 result.time_s, result.frames, result.final_distance_m, [t["cause"] for t in result.watchdog_trips])  # fmt: skip
+                 result.time_s, result.steps, result.final_distance_m, [t["cause"] for t in result.watchdog_trips])  # fmt: skip
         self.notifier.status(f"episode {episode}: {result.outcome}" + (f" ({result.abort_reason})" if result.abort_reason else ""))
         return result
 
     def _record_episode(self, result: EpisodeResult, episode: int, recorder: Recorder | None, abort_reason: str | None = None) -> None:
-        record = dataclasses.asdict(result)
+        record = result.summary()
         record.update(episode=episode, log=str(recorder.path) if recorder else None)
         if recorder is not None:
             record.update(log_error=recorder.stats.log_error, log_records_written=recorder.stats.written,
@@ -329,7 +318,8 @@ class FieldProgram:
         self.summary["logs"].append(str(path))
         return recorder
 
-    def _record_log(self, recorder: Recorder) -> None:
+    async def _close_log(self, recorder: Recorder) -> None:
+        await close_step("the flight log", lambda: in_daemon_thread("recorder-close", recorder.close))
         if recorder.stats.log_error is not None:
             self.summary["log_error"] = recorder.stats.log_error
 

@@ -1,4 +1,4 @@
-"""Reading a cmnav flight log (MCAP, written by ``runtime.recorder``) back, front to back.
+"""Reading a cmnav flight log (MCAP, written by ``runtime.log.recorder``) back, front to back.
 
 Used by ``cmnav replay`` and by the ``replay`` camera source.  The file is streamed
 (``mcap.stream_reader.StreamReader``) rather than read through its summary: a log cut short by a
@@ -30,18 +30,15 @@ from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import CRCValidationError, StreamReader
 from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoderFactory
 
-from .contract import CONTRACT_VERSION
-from .recorder import TOPIC_ACTION, TOPIC_DEPTH, TOPIC_GRAY, TOPIC_OBSERVATION
+from ..contract import CONTRACT_VERSION
+from .topics import METADATA_NAME, TOPIC_DEPTH, TOPIC_GRAY, TOPIC_OBSERVATION
 
 log = logging.getLogger(__name__)
 
-METADATA_NAME = "cmnav"
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 # Larger than any chunk the recorder writes (a few MB), far below the placeholder length of the
 # chunk a killed writer left unfinished.
 MAX_RECORD_BYTES = 1 << 30
-FRAME_TOPICS = (TOPIC_DEPTH, TOPIC_GRAY)
-STEP_TOPICS = (TOPIC_OBSERVATION, TOPIC_ACTION)
 # Where the byte stream ended before the MCAP footer: a cut file (killed writer, copy cut short).
 _CUT = (EndOfFile, RecordLengthLimitExceeded, struct.error)
 # Where it is damaged: a chunk whose bytes changed since they were written.

@@ -48,28 +48,30 @@ from foxglove.channels import RawImageChannel
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 from foxglove.messages import RawImage, Timestamp
 
-from .camera.frame import Frame
-from .config import RecorderConfig
-from .contract import CONTRACT_VERSION, VelocityBodyYawspeed
-from .policy_step import StepResult
-from .status_text import StatusText
-from .vehicle import VehicleState
+from ..camera.frame import Frame
+from ..config import RecorderConfig
+from ..contract import CONTRACT_VERSION, VelocityBodyYawspeed
+from ..policy_step import StepResult
+from ..state import StatusText, VehicleState
+from .topics import (
+    CAMERA_FRAME_ID,
+    METADATA_NAME,
+    TOPIC_ACTION,
+    TOPIC_COMMAND,
+    TOPIC_DEPTH,
+    TOPIC_GRAY,
+    TOPIC_LATENT,
+    TOPIC_OBSERVATION,
+    TOPIC_STATE,
+    TOPIC_STATUS_TEXT,
+    TOPIC_TIMING,
+    TOPIC_WATCHDOG,
+)
 
 log = logging.getLogger(__name__)
 # foxglove reports a failed channel write here (one warning per message) instead of raising.
 _FOXGLOVE_SINK_LOG = logging.getLogger("foxglove.log_sink_set")
 
-TOPIC_DEPTH = "/camera/depth"
-TOPIC_GRAY = "/camera/gray"
-TOPIC_STATE = "/vehicle/state"
-TOPIC_OBSERVATION = "/policy/observation"
-TOPIC_ACTION = "/policy/action"
-TOPIC_COMMAND = "/vehicle/command"
-TOPIC_LATENT = "/policy/latent"
-TOPIC_TIMING = "/timing"
-TOPIC_WATCHDOG = "/watchdog"
-TOPIC_STATUS_TEXT = "/vehicle/status_text"
-CAMERA_FRAME_ID = "camera"
 
 _NUM_ARRAY = {"type": "array", "items": {"type": ["number", "null"]}}
 _INT = {"type": "integer"}
@@ -142,7 +144,7 @@ class Recorder:
             )
             # Written at once: a full disk shows here, before the flight, not in the air.
             self._writer.write_metadata(
-                "cmnav",
+                METADATA_NAME,
                 {"contract_version": CONTRACT_VERSION, "monotonic_to_unix_offset_ns": str(self._offset_ns), **(metadata or {})},
             )
             self._writer.flush()
@@ -206,7 +208,7 @@ class Recorder:
         """Write what is queued, then close the file (its summary makes it seekable).  Never raises:
         a failure is logged once and kept in ``stats.log_error``.  The writer thread gets
         ``timeout_s``; the file's close itself can block on a hung disk, so callers in the flight
-        program run this in a daemon thread with a bound (``runtime.shutdown``)."""
+        program run this in a daemon thread with a bound (``runtime.service.shutdown``)."""
         if self._closed:
             return
         self._closed = True

@@ -8,7 +8,7 @@ surface's Lambert shade and texture parameters.  Then, in parallel over env x im
 room's six faces for every pixel of the row, the slab test of each box whose rectangle covers
 the row over the rectangle's columns only, and the texture and shade of the nearest hit.
 
-Same geometry as :func:`sim.render.render_reference` (float64, slab test in the box's frame,
+Same geometry as :func:`sim.render.reference.render_reference` (float64, slab test in the box's frame,
 same tie-breaks) and the same texture arithmetic (float32, :mod:`sim.texture`).  Rays keep a
 unit forward component (camera frame C, x forward), so a hit's ray parameter is its z-depth.
 Threads: as many as torch is set to use (``torch.set_num_threads``), through numba's OpenMP
@@ -26,9 +26,8 @@ import torch
 from numba import njit, prange
 from torch import Tensor
 
-from .camera import CameraModel
-from .render import AMBIENT_FRACTION, LIGHT_DIR_ENU, RenderOutput
-from .texture import (
+from ..camera import CameraModel
+from ..texture import (
     FACES_PER_BOX,
     GRATING_FIRST_PARAMETER,
     MIN_ALBEDO,
@@ -37,7 +36,8 @@ from .texture import (
     TILE_SIZE_PARAMETER,
     surface_parameters,
 )
-from .world import WorldBatch
+from ..world import WorldBatch
+from .reference import AMBIENT_FRACTION, LIGHT_DIR_ENU, RenderOutput
 
 # A box's projection is taken of its part at least this far in front of the camera plane (m):
 # only a ray whose whole path through the box is nearer than this is culled wrongly.

@@ -1,5 +1,5 @@
 """Stopping a flight program on SIGTERM / SIGINT, whatever it is doing: the one place that decides
-what the vehicle is told, for ``cmnav fly`` and the SITL dry run (``runtime.sitl_flight``) alike.
+what the vehicle is told, for ``cmnav fly`` and the SITL dry run (``runtime.programs.sitl``) alike.
 
 The programs say which :class:`Phase` they are in *before* each step (``FlightPhase.enter``), and
 nothing resets it in cleanup code: the decision reads the phase the signal interrupted, plus the
@@ -23,12 +23,12 @@ import time
 from enum import Enum
 from typing import TYPE_CHECKING
 
-from .vehicle import MODE_OFFBOARD, VehicleError
+from ..state import MODE_OFFBOARD, VehicleError
 
 if TYPE_CHECKING:
-    from .flight import FlightLoop
-    from .signals import StopSignals
-    from .vehicle import Vehicle
+    from ..flight import FlightLoop
+    from ..service.signals import StopSignals
+    from ..vehicle import Vehicle
 
 log = logging.getLogger(__name__)
 

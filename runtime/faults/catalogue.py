@@ -7,8 +7,8 @@ lasts for the rest of the flight.  Each kind is injected where it really happens
   entry): ``camera-stall``, ``camera-garbage``, ``camera-blackout``, ``telemetry-loss``,
   ``pilot-takeover``, ``offboard-refused`` (only ``@0``: the vehicle refuses OFFBOARD when asked),
   ``vehicle-stuck`` (the vehicle stops following setpoints, without a collision);
-- in the runtime (``python -m runtime.sitl_flight --inject``, times from the start of
-  :meth:`runtime.flight.FlightLoop.fly`; hooks in ``runtime.fault_injection``):
+- in the runtime (``python -m runtime.programs.sitl --inject``, times from the start of
+  :meth:`runtime.flight.FlightLoop.fly`; hooks in ``runtime.faults.injection``):
   ``inference-overrun`` and ``nan-action`` around the model step, ``geofence`` (the watchdog's
   fence shrinks);
 - by ``cmnav sitl`` itself: ``runtime-kill`` (SIGKILL of the runtime process).

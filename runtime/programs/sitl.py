@@ -1,14 +1,15 @@
-"""``python -m runtime.sitl_flight``: fly one SITL episode with the runtime (the SITL dry run).
+"""``python -m runtime.programs.sitl``: fly one SITL episode with the runtime (the SITL dry run).
 
 Connects to the SITL vehicle (MAVSDK ``udpin://127.0.0.1:PORT``) and its camera link (TCP
-127.0.0.1), waits for health (armable, local position, home) and a first frame, arms, takes off
-to ``--takeoff-alt-m`` and waits for Hold there, sets a hover setpoint, starts offboard, flies
-the policy (:class:`runtime.flight.FlightLoop`) until within GOAL_REACHED_RADIUS_M of the goal,
-the time limit or an abort, hovers, Holds, lands, waits for disarm and writes the summary JSON.
-If the autopilot refuses offboard, it records the trip (``offboard_refused``), commands Hold and
+127.0.0.1) and flies the episode script (``runtime.programs.episode``, the same as ``cmnav fly``'s dry
+run): waits for health (armable, local position, home) and a first frame, arms, takes off to
+``--takeoff-alt-m`` and waits for Hold there, sets a hover setpoint, starts offboard, flies the
+policy (:class:`runtime.flight.FlightLoop`) until within GOAL_REACHED_RADIUS_M of the goal, the
+time limit or an abort, hovers, Holds, lands, waits for disarm and writes the summary JSON.  If
+the autopilot refuses offboard, it records the trip (``offboard_refused``), commands Hold and
 lands without flying; if the pilot takes over, it stops commanding and does nothing more; after
 a ``vehicle_fault`` trip with the vehicle disarmed (a crash), there is nothing to land.
-``--inject`` (tests only) injects the runtime's faults of ``runtime.faults``.
+``--inject`` (tests only) injects the runtime's faults of ``runtime.faults.catalogue``.
 
 Unlike the field program this one arms and takes off by itself: that is what a SITL dry run is.
 
@@ -37,26 +38,26 @@ from pathlib import Path
 
 import numpy as np
 
-from .affinity import pin_process
-from .camera.sim_source import SimCameraSource
-from .config import PolicyConfig, ProcessConfig, RecorderConfig, RuntimeConfig, VehicleConfig
-from .contract import HOVER, ContractMismatchError
-from .fault_injection import FaultyPolicy, shrink_geofence, shrink_geofence_at
-from .faults import FaultKind, FaultSite, Injection, InjectionError, parse_injection
-from .flight import EpisodeResult, FlightLoop, log_task_failure
-from .model import ModelLoadError, PolicyModel, check_outputs_finite
-from .recorder import Recorder, RecorderError
-from .shutdown import close_step, in_daemon_thread
-from .signals import StopSignals, cancel_on_stop_signals, ignore_stop_signals
-from .stop import FlightPhase, Phase, stop_on_signal
-from .vehicle import MODE_OFFBOARD, Vehicle, VehicleError
-from .watchdog import TripCause
+from ..camera.sim_source import SimCameraSource
+from ..config import PolicyModelConfig, ProcessConfig, RecorderConfig, RuntimeConfig, VehicleConfig
+from ..contract import ContractMismatchError
+from ..faults.catalogue import FaultKind, FaultSite, Injection, InjectionError, parse_injection
+from ..faults.injection import FaultyPolicy, shrink_geofence, shrink_geofence_at
+from ..flight import EpisodeResult, FlightLoop, log_task_failure
+from ..log.recorder import Recorder, RecorderError
+from ..model import ModelLoadError, PolicyModel, check_outputs_finite
+from ..service.affinity import pin_process
+from ..service.shutdown import close_step, in_daemon_thread
+from ..service.signals import StopSignals, cancel_on_stop_signals, ignore_stop_signals
+from ..state import VehicleError, VehicleState
+from ..vehicle import Vehicle
+from .episode import EpisodeError, EpisodeScript
+from .stop import FlightPhase, stop_on_signal
 
-log = logging.getLogger("runtime.sitl_flight")
+log = logging.getLogger("runtime.programs.sitl")
 
 T_IMPORT_NS = time.monotonic_ns()
 FIRST_FRAME_TIMEOUT_S = 10.0
-DISARM_REPORT_TIMEOUT_S = 1.5  # after a vehicle fault: a crashed vehicle's disarm shows within a HEARTBEAT
 LOG_NAME = "flight.mcap"
 
 
@@ -69,12 +70,12 @@ def process_age_s() -> float:
     return time.clock_gettime(time.CLOCK_BOOTTIME) - start_ticks / os.sysconf("SC_CLK_TCK")
 
 
-class FlightError(RuntimeError):
+class FlightError(EpisodeError):
     """The episode could not be run (or landed); the message says why."""
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m runtime.sitl_flight", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m runtime.programs.sitl", description=__doc__.split("\n\n")[0])
     parser.add_argument("--mavlink-port", type=int, required=True, help="UDP port MAVSDK listens on (127.0.0.1)")
     parser.add_argument("--camera-port", type=int, required=True, help="the SITL vehicle's camera TCP port (127.0.0.1)")
     parser.add_argument("--model", type=Path, required=True, help="ONNX model with the runtime's contract")
@@ -109,7 +110,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error(f"--timeout-s {args.timeout_s}: expected a positive number of seconds")
     try:
         args.process = ProcessConfig(cpu_affinity=tuple(int(v) for v in args.cpu_affinity.split(",") if v.strip()))
-        args.policy = PolicyConfig(model_path=args.model, providers=tuple(args.providers.split(",")), intra_op_threads=args.intra_op_threads)
+        args.policy = PolicyModelConfig(model_path=args.model, providers=tuple(args.providers.split(",")), intra_op_threads=args.intra_op_threads)
     except ValueError as err:  # ConfigError names the key
         parser.error(f"--cpu-affinity {args.cpu_affinity!r} / --intra-op-threads {args.intra_op_threads}: {err}")
     return args
@@ -117,7 +118,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 async def fly_episode(args: argparse.Namespace, summary: dict, signals: StopSignals | None = None) -> EpisodeResult:
     """Everything between process start and disarm; fills ``summary`` as it goes.  On a stop
-    signal (``signals``) it commands the safe state of the phase it interrupted (``runtime.stop``),
+    signal (``signals``) it commands the safe state of the phase it interrupted (``runtime.programs.stop``),
     records ``summary["stop"]`` and what was flown, and re-raises the cancellation."""
     flight = FlightPhase()
     config = RuntimeConfig(
@@ -145,69 +146,32 @@ async def fly_episode(args: argparse.Namespace, summary: dict, signals: StopSign
     step_faults = [i for i in args.inject if i.kind in (FaultKind.INFERENCE_OVERRUN, FaultKind.NAN_ACTION)]
     policy = FaultyPolicy(model, step_faults) if step_faults else None
     loop = FlightLoop(config, policy or model, vehicle, camera, recorder)
-    try:
-        flight.enter(Phase.CONNECTING)
-        await vehicle.connect()
-        await loop.start()
-        flight.enter(Phase.WAITING_FOR_HEALTH)
-        state = await vehicle.wait_ready()
-        log.info("vehicle ready: home %s (local ENU m)", np.round(state.home_enu_m, 2))
-        flight.enter(Phase.WAITING_FOR_CAMERA)
-        try:
-            await loop.wait_first_frame(FIRST_FRAME_TIMEOUT_S)
-        except asyncio.TimeoutError as err:
-            raise FlightError(
-                f"no camera frame on 127.0.0.1:{args.camera_port} within {FIRST_FRAME_TIMEOUT_S} s "
-                f"(camera link: {camera.stats}): is the SITL vehicle serving frames?"
-            ) from err
-        flight.enter(Phase.ARMING)
-        await vehicle.arm()
-        flight.enter(Phase.TAKING_OFF)
-        await vehicle.takeoff(args.takeoff_alt_m)
-        await vehicle.wait_takeoff_done(args.takeoff_alt_m)
-        flight.enter(Phase.ENTERING_OFFBOARD)
-        t_request_ns = time.monotonic_ns()
-        try:
-            await vehicle.start_offboard(HOVER)
-            await vehicle.wait_until(lambda s: s.flight_mode == MODE_OFFBOARD, config.vehicle.command_timeout_s, "offboard mode")
-        except VehicleError as err:
-            result = await _offboard_refused(loop, vehicle, err, t_request_ns)
-            summary["t_episode_start_s"] = t_request_ns / 1e9
-            _fill(summary, result)
-            flight.enter(Phase.LANDING)
-            await vehicle.land()
-            await vehicle.wait_disarmed()
-            flight.enter(Phase.DONE)
-            log.info("landed and disarmed without flying the policy")
-            return result
+    script = EpisodeScript(vehicle, loop, flight)
+
+    async def fly(state: VehicleState) -> EpisodeResult:
         summary["t_launch_to_offboard_s"] = round(process_age_s(), 3)
-        home_enu_m = vehicle.state().home_enu_m
-        goal_enu_m = home_enu_m + args.goal_rel_home
-        flight.enter(Phase.EPISODE)
+        goal_enu_m = state.home_enu_m + args.goal_rel_home
         result = await _fly_with_faults(loop, policy, args.inject, goal_enu_m, args.timeout_s, summary)
-        flight.enter(Phase.HOLDING)
-        _fill(summary, result)
-        log.info("episode %s in %.2f s (%d frames, final distance %.2f m)", result.outcome, result.time_s,
-                 result.frames, result.final_distance_m)  # fmt: skip
-        if loop.watchdog.pilot_took_over:
-            log.warning("the pilot took over: not landing, the vehicle is theirs")
-            return result
-        if result.abort_reason == TripCause.VEHICLE_FAULT.value and not await _still_armed(vehicle):
-            log.warning("the autopilot reported a fault and disarmed: nothing to land")
-            return result
-        flight.enter(Phase.LANDING)
-        await vehicle.land()
-        await vehicle.wait_disarmed()
-        flight.enter(Phase.DONE)
-        log.info("landed and disarmed")
+        summary.update(result.summary())
+        log.info("episode %s in %.2f s (%d steps, final distance %.2f m)", result.outcome, result.time_s,
+                 result.steps, result.final_distance_m)  # fmt: skip
         return result
+
+    async def refused(result: EpisodeResult, t_request_ns: int) -> None:
+        summary["t_episode_start_s"] = t_request_ns / 1e9
+        summary.update(result.summary())
+
+    try:
+        await script.start(FIRST_FRAME_TIMEOUT_S, "sim",
+                           lambda: f"is the SITL vehicle serving frames on 127.0.0.1:{args.camera_port} (camera link: {camera.stats})?")  # fmt: skip
+        return await script.dry_run(args.takeoff_alt_m, fly, before_offboard=lambda: None, on_refused=refused)
     except VehicleError as err:
         raise FlightError(f"vehicle: {err}") from err
     except asyncio.CancelledError:
         if signals is not None:
             summary["stop"] = await stop_on_signal(signals, flight, loop, vehicle, T_IMPORT_NS)
         if loop.interrupted is not None and "time_s" not in summary:
-            _fill(summary, loop.interrupted)
+            summary.update(loop.interrupted.summary())
         raise
     finally:
         summary["camera"] = vars(camera.stats).copy()
@@ -215,27 +179,6 @@ async def fly_episode(args: argparse.Namespace, summary: dict, signals: StopSign
         await close_step("the flight log", lambda: in_daemon_thread("recorder-close", recorder.close))
         summary["recorder"] = vars(recorder.stats).copy()
         await close_step("MAVSDK", vehicle.close)
-
-
-async def _still_armed(vehicle: Vehicle) -> bool:
-    """Armed, as the next HEARTBEAT says (PX4 sends one a second: a disarm may not show yet)."""
-    try:
-        await vehicle.wait_until(lambda s: not s.armed, DISARM_REPORT_TIMEOUT_S, "disarmed")
-    except VehicleError:
-        return True
-    return False
-
-
-async def _offboard_refused(loop: FlightLoop, vehicle: Vehicle, err: VehicleError, t_request_ns: int) -> EpisodeResult:
-    """The autopilot refused offboard (or never showed it): record the trip, make sure the vehicle
-    is in Hold (offboard.stop also ends MAVSDK's setpoint re-sending), fly nothing."""
-    trip = loop.watchdog.refuse_start(TripCause.OFFBOARD_REFUSED, f"offboard did not start: {err}", t_request_ns, time.monotonic_ns())
-    await vehicle.stop_offboard()
-    return EpisodeResult(
-        outcome="aborted", abort_reason=trip.cause.value, time_s=0.0, frames=0, frames_received=loop.frames_received,
-        missed_deadlines=0, bad_frames=0, step_ms={"p50": None, "p99": None, "max": None, "n": 0}, stage_ms={},
-        watchdog_trips=loop.watchdog.records(), final_distance_m=float("nan"), frames_rejected=loop.frames_rejected,
-    )  # fmt: skip
 
 
 async def _fly_with_faults(
@@ -269,29 +212,11 @@ async def _fly_with_faults(
         summary["injections"] = [{"kind": kind.value, "t_s": t_s} for kind, t_s in injected.items()]
 
 
-def _fill(summary: dict, result: EpisodeResult) -> None:
-    summary.update(
-        outcome=result.outcome,
-        abort_reason=result.abort_reason,
-        time_s=result.time_s,
-        frames=result.frames,
-        frames_received=result.frames_received,
-        missed_deadlines=result.missed_deadlines,
-        bad_frames=result.bad_frames,
-        step_ms=result.step_ms,
-        stage_ms=result.stage_ms,
-        watchdog_trips=result.watchdog_trips,
-        final_distance_m=result.final_distance_m,
-        frames_rejected=result.frames_rejected,
-        tracking_error_peak_m_s=result.tracking_error_peak_m_s,
-    )
-
-
 async def _main(args: argparse.Namespace, summary: dict) -> int:
     signals = cancel_on_stop_signals()
     try:
         result = await fly_episode(args, summary, signals)
-    except FlightError as err:
+    except EpisodeError as err:
         log.error("%s", err)
         summary["error"] = str(err)
         if "time_s" in summary:  # it flew; landing (or after) failed

@@ -1,5 +1,5 @@
-"""The faults ``runtime.sitl_flight --inject`` injects inside the runtime process (catalogue and
-syntax: ``runtime.faults``): ``inference-overrun`` and ``nan-action`` around the model step
+"""The faults ``runtime.programs.sitl --inject`` injects inside the runtime process (catalogue and
+syntax: ``runtime.faults.catalogue``): ``inference-overrun`` and ``nan-action`` around the model step
 (:class:`FaultyPolicy`), ``geofence`` by shrinking the watchdog's fence (:func:`shrink_geofence`,
 :func:`shrink_geofence_at`).  Used only when an injection is asked for.
 """
@@ -13,10 +13,10 @@ from typing import Callable, Iterable, Protocol
 
 import numpy as np
 
-from .faults import FaultKind, Injection
-from .model import StepOutput
-from .vehicle import VehicleState
-from .watchdog import Watchdog
+from ..model import ModelOutput
+from ..state import VehicleState
+from ..watchdog import Watchdog
+from .catalogue import FaultKind, Injection
 
 log = logging.getLogger(__name__)
 
@@ -34,7 +34,7 @@ GEOFENCE_MIN_RADIUS_M = 0.01
 class _Policy(Protocol):
     def initial_hidden(self) -> np.ndarray: ...
 
-    def step(self, gray: np.ndarray, depth: np.ndarray, state: np.ndarray, hidden: np.ndarray) -> StepOutput: ...
+    def step(self, gray: np.ndarray, depth: np.ndarray, state: np.ndarray, hidden: np.ndarray) -> ModelOutput: ...
 
 
 class FaultyPolicy:
@@ -60,13 +60,13 @@ class FaultyPolicy:
     def initial_hidden(self) -> np.ndarray:
         return self._model.initial_hidden()
 
-    def step(self, gray: np.ndarray, depth: np.ndarray, state: np.ndarray, hidden: np.ndarray) -> StepOutput:
+    def step(self, gray: np.ndarray, depth: np.ndarray, state: np.ndarray, hidden: np.ndarray) -> ModelOutput:
         """The wrapped model's step, with the faults whose time has come."""
         if self._active(FaultKind.INFERENCE_OVERRUN):
             time.sleep(INFERENCE_OVERRUN_S)
         out = self._model.step(gray, depth, state, hidden)
         if self._active(FaultKind.NAN_ACTION):
-            return StepOutput(np.full_like(out.action, np.nan), out.hidden_next, out.latent)
+            return ModelOutput(np.full_like(out.action, np.nan), out.hidden_next, out.latent)
         return out
 
     def _active(self, kind: FaultKind) -> bool:

@@ -78,13 +78,13 @@ def run_pipeline(config: PipelineConfig, argv: list[str] | None = None) -> dict:
     again to continue (finished stages are skipped, training stages resume from their state)."""
     from export.policy_onnx import export_policy
 
-    from .cmwae.evaluate import CmwaeEvalConfig, evaluate_cmwae
-    from .cmwae.train import CmwaeTrainConfig, train_cmwae
-    from .data.generate import DatasetSpec, generate_dataset
-    from .policy.evaluate import PolicyEvalConfig, evaluate_policy, format_table2
-    from .policy.dagger import DaggerConfig, train_dagger
-    from .policy.network import POLICY_SIZES
-    from .policy.train import PolicyTrainConfig, train_policy
+    from training.cmwae.evaluate import CmwaeEvalConfig, evaluate_cmwae
+    from training.cmwae.train import CmwaeTrainConfig, train_cmwae
+    from training.data.generate import DatasetSpec, generate_dataset
+    from training.policy.evaluate import PolicyEvalConfig, evaluate_policy, format_table2
+    from training.policy.dagger import DaggerConfig, train_dagger
+    from training.policy.network import POLICY_SIZES
+    from training.policy.train import PolicyTrainConfig, train_policy
 
     config.validate()
     out = Path(config.out_dir)

@@ -1,0 +1,172 @@
+"""The dry-run episode script, the one sequence both flight programs fly when the runtime arms by
+itself: ``cmnav fly`` with ``mission.allow_arm_takeoff = true`` and the SITL flight
+(``cmnav sitl``).
+
+connect → wait for health (armable, local position, home) → first camera frame → arm → take off
+(and wait for Hold at the takeoff height) → [the program's last check before offboard] → hover
+setpoint, offboard → fly the policy → pilot check → land, wait for disarm.
+
+- The autopilot refuses offboard (or never shows it): the trip is recorded (``offboard_refused``),
+  Hold is commanded, the vehicle lands, nothing is flown.
+- The program withholds offboard (:class:`OffboardWithheld`, e.g. its flight log cannot be
+  written): the vehicle lands, the exception goes on to the program.
+- The pilot took over during the episode: nothing more is commanded; the vehicle is theirs.
+- A ``vehicle_fault`` trip with the vehicle disarmed (a crash): there is nothing to land.
+
+Every step enters its :class:`runtime.programs.stop.Phase` first, so a stop signal at any moment is
+answered with that phase's safe state (``runtime.programs.stop``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from typing import Awaitable, Callable, TypeVar
+
+import numpy as np
+
+from ..contract import HOVER
+from ..flight import EpisodeResult, FlightLoop
+from ..state import MODE_OFFBOARD, VehicleError, VehicleState
+from ..vehicle import Vehicle
+from ..watchdog import TripCause
+from .stop import FlightPhase, Phase
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+DISARM_REPORT_TIMEOUT_S = 1.5  # after a vehicle fault: a crashed vehicle's disarm shows within a HEARTBEAT
+
+
+class EpisodeError(RuntimeError):
+    """The episode could not be run; the message names the cause and what to check."""
+
+
+class OffboardWithheld(RuntimeError):
+    """Raised by a program's check before offboard: land without entering it."""
+
+
+async def _await(awaitable: Awaitable[T]) -> T:
+    return await awaitable
+
+
+def _log_status(text: str) -> None:
+    log.info("%s", text)
+
+
+class EpisodeScript:
+    """The sequence above on one vehicle and flight loop.
+
+    ``status`` reports each step (the field program also tells systemd); ``alive_while`` awaits a
+    long wait (each has its own timeout) while the program reports itself alive; ``flight`` is the
+    program's phase, read by its stop-signal handler."""
+
+    def __init__(
+        self,
+        vehicle: Vehicle,
+        loop: FlightLoop,
+        flight: FlightPhase,
+        status: Callable[[str], None] = _log_status,
+        alive_while: Callable[[Awaitable], Awaitable] = _await,
+    ) -> None:
+        self.vehicle = vehicle
+        self.loop = loop
+        self.flight = flight
+        self.status = status
+        self.alive_while = alive_while
+
+    async def start(self, first_frame_timeout_s: float, camera_name: str, no_frame_fix: Callable[[], str]) -> VehicleState:
+        """Connect, start the flight loop (camera), wait for health and the first frame;
+        :class:`EpisodeError` if no frame comes in time (``no_frame_fix()`` says what to check)."""
+        self.status(f"connecting to the autopilot on {self.vehicle.config.url}")
+        self.flight.enter(Phase.CONNECTING)
+        await self.alive_while(self.vehicle.connect())
+        await self.loop.start()
+        self.status("waiting for autopilot health (armable, local position, home)")
+        self.flight.enter(Phase.WAITING_FOR_HEALTH)
+        state = await self.alive_while(self.vehicle.wait_ready())
+        log.info("vehicle ready: home %s (local ENU m)", np.round(state.home_enu_m, 2))
+        self.flight.enter(Phase.WAITING_FOR_CAMERA)
+        self.status(f"waiting for the first {camera_name} camera frame")
+        try:
+            await self.alive_while(self.loop.wait_first_frame(first_frame_timeout_s))
+        except asyncio.TimeoutError as err:
+            raise EpisodeError(f"no {camera_name} camera frame within {first_frame_timeout_s} s: {no_frame_fix()}") from err
+        return state
+
+    async def dry_run(
+        self,
+        takeoff_alt_m: float,
+        fly: Callable[[VehicleState], Awaitable[EpisodeResult]],
+        before_offboard: Callable[[], None],
+        on_refused: Callable[[EpisodeResult, int], Awaitable[None]],
+    ) -> EpisodeResult:
+        """Arm, take off, ``before_offboard()`` (may raise :class:`OffboardWithheld`: land, re-raise),
+        offboard, ``fly(state in offboard)``, pilot check, land.  If the autopilot refuses offboard,
+        ``on_refused(result, t_request_ns)`` records the unflown episode before the landing."""
+        self.status(f"dry run: arming and taking off to {takeoff_alt_m:.2f} m")
+        self.flight.enter(Phase.ARMING)
+        await self.vehicle.arm()
+        self.flight.enter(Phase.TAKING_OFF)
+        await self.vehicle.takeoff(takeoff_alt_m)
+        await self.alive_while(self.vehicle.wait_takeoff_done(takeoff_alt_m))
+        try:
+            before_offboard()
+        except OffboardWithheld as err:
+            log.error("not entering offboard: %s; landing", err)
+            await self.land()
+            raise
+        self.flight.enter(Phase.ENTERING_OFFBOARD)
+        t_request_ns = time.monotonic_ns()
+        try:
+            await self.vehicle.start_offboard(HOVER)
+            state = await self.alive_while(
+                self.vehicle.wait_until(lambda s: s.flight_mode == MODE_OFFBOARD, self.vehicle.config.command_timeout_s, "offboard mode")
+            )
+        except VehicleError as err:
+            result = await self._offboard_refused(err, t_request_ns)
+            await on_refused(result, t_request_ns)
+            await self.land()
+            return result
+        self.flight.enter(Phase.EPISODE)
+        result = await fly(state)
+        self.flight.enter(Phase.HOLDING)
+        if self.loop.watchdog.pilot_took_over:
+            log.warning("the pilot took over: not landing, the vehicle is theirs")
+            return result
+        if result.abort_reason == TripCause.VEHICLE_FAULT.value and not await self._still_armed():
+            log.warning("the autopilot reported a fault and disarmed: nothing to land")
+            return result
+        await self.land()
+        return result
+
+    async def land(self) -> None:
+        """Land where the vehicle is and wait for the disarm."""
+        self.status("dry run: landing")
+        self.flight.enter(Phase.LANDING)
+        await self.vehicle.land()
+        await self.alive_while(self.vehicle.wait_disarmed())
+        self.flight.enter(Phase.DONE)
+        log.info("landed and disarmed")
+
+    async def _still_armed(self) -> bool:
+        """Armed, as the next HEARTBEAT says (PX4 sends one a second: a disarm may not show yet)."""
+        try:
+            await self.vehicle.wait_until(lambda s: not s.armed, DISARM_REPORT_TIMEOUT_S, "disarmed")
+        except VehicleError:
+            return True
+        return False
+
+    async def _offboard_refused(self, err: VehicleError, t_request_ns: int) -> EpisodeResult:
+        """The autopilot refused offboard (or never showed it): record the trip, make sure the
+        vehicle is in Hold (offboard.stop also ends MAVSDK's setpoint re-sending), fly nothing."""
+        loop = self.loop
+        trip = loop.watchdog.refuse_start(TripCause.OFFBOARD_REFUSED, f"offboard did not start: {err}", t_request_ns, time.monotonic_ns())
+        await self.vehicle.stop_offboard()
+        return EpisodeResult(
+            outcome="aborted", abort_reason=trip.cause.value, time_s=0.0, steps=0, frames_received=loop.frames_received,
+            missed_deadlines=0, bad_frames=0, step_ms={"p50": None, "p99": None, "max": None, "n": 0}, stage_ms={},
+            watchdog_trips=loop.watchdog.records(), final_distance_m=float("nan"), frames_rejected=loop.frames_rejected,
+        )  # fmt: skip

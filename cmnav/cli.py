@@ -417,7 +417,7 @@ def build_parser() -> argparse.ArgumentParser:
                              help="torch compute precision on the CPU (default auto: bf16 + channels_last where the CPU has "
                              "AMX/AVX512-BF16, fp32 channels_last on AVX2, else fp32; the choice is logged)")  # fmt: skip
 
-    train = sub.add_parser("train", help="train the CMWAE encoder or the navigation policy")
+    train = sub.add_parser("train", help="train the CMWAE encoder, the privileged teacher, or the navigation policy (PPO or DAgger)")
     train_sub = train.add_subparsers(dest="what", required=True, metavar="WHAT")
     cmwae = train_sub.add_parser(
         "cmwae",
@@ -484,11 +484,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     policy = train_sub.add_parser(
         "policy",
-        help="train the navigation policy (recurrent PPO) on the batched sim with a frozen encoder",
-        description="Recurrent PPO (FC 256-128-64 ELU -> GRU -> FC) on N simulated envs at 15 Hz, with the "
+        help="train the navigation policy on the batched sim with a frozen encoder: recurrent PPO, or DAgger "
+        "from a teacher (--teacher)",
+        description="The deployed network (FC 256-128-64 ELU -> GRU -> FC) on N simulated envs at 15 Hz, with the "
         "frozen encoder, the runtime's observation/action contract, depth corruption on a random half of "
-        "the envs each step, kicks, camera jitter and the obstacle curriculum.  Multi-GPU: "
-        "`torchrun --nproc_per_node=N -m cmnav train policy ... --device cuda`.",
+        "the envs each step, kicks, camera jitter and the obstacle curriculum.  By recurrent PPO, or with "
+        "--teacher by DAgger: the privileged teacher labels every state a teacher/student mixture visits.  "
+        "Multi-GPU (PPO): `torchrun --nproc_per_node=N -m cmnav train policy ... --device cuda`.",
     )
     policy.add_argument("--encoder", required=True, help="encoder checkpoint directory (cmnav train cmwae)")
     add_ppo_options(policy, student=True)
@@ -573,11 +575,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     pipeline = sub.add_parser(
         "pipeline",
-        help="dataset -> encoder (S2) -> Table I -> policy -> Table II -> export, within a time budget",
+        help="dataset -> encoder (S2) -> Table I -> teacher -> student -> Table II -> export, within a time budget",
         description="The one-command training run for a GPU machine with only torch, onnx, onnxruntime and numpy: "
-        "renders a dataset, trains the CMWAE (S2) and the policy on shares of the --minutes budget "
-        "(35%% and 50%%), evaluates Table I and II, exports model.onnx, and writes MODEL_CARD.md and "
-        "pipeline.json in --out.  Checkpoints are fp16 shards <= 15 MiB.",
+        "renders a dataset, trains the CMWAE (S2), the privileged teacher (PPO) and the student (DAgger) on "
+        "shares of the --minutes budget (35%%, 30%% and 25%%), evaluates Table I, the teacher's and the "
+        "student's Table II, exports model.onnx, and writes MODEL_CARD.md and pipeline.json in --out.  "
+        "Checkpoints are fp16 shards <= 15 MiB.",
     )
     pipeline.add_argument("--out", required=True, help="output directory")
     pipeline.add_argument("--minutes", type=float, required=True, help="wall-clock budget")

@@ -4,6 +4,7 @@ runtime on one vehicle), the runtime's config and process.  Every process is sto
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import resource
@@ -13,6 +14,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from pymavlink import mavutil
@@ -249,3 +251,34 @@ class Pilot:
 
     def close(self) -> None:
         self.link.close()
+
+
+@dataclass
+class PilotRig:
+    """Pilot mode's pieces: the SITL vehicle, the MAVLink router between it, the runtime's port and
+    the pilot's, the sd_notify listener, and the `cmnav fly` process once started."""
+
+    runtime_port: int
+    router: MavlinkRouter
+    sitl: Sitl
+    notify: NotifyListener
+    pilot: Pilot
+    proc: subprocess.Popen | None = None
+
+
+@contextlib.contextmanager
+def pilot_rig(tmp: Path):
+    """A :class:`PilotRig`; everything it started is stopped on the way out."""
+    runtime_port, pilot_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
+    router = MavlinkRouter(runtime_port, pilot_port)
+    rig = PilotRig(runtime_port, router, Sitl(tmp, router.port), NotifyListener(tmp / "notify"), Pilot(pilot_port))
+    try:
+        yield rig
+    finally:
+        if rig.proc is not None and rig.proc.poll() is None:
+            rig.proc.kill()
+            rig.proc.wait()
+        rig.pilot.close()
+        rig.sitl.stop()
+        rig.router.close()
+        rig.notify.close()

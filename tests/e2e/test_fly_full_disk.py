@@ -19,7 +19,7 @@ import pytest
 from export.goal_seeker import export_goal_seeker
 from sim.sitl_session import free_port
 from tests.e2e.fly_helpers import (
-    READY_TIMEOUT_S, MavlinkRouter, NotifyListener, Pilot, Sitl, finish_fly, fly_config, start_fly,
+    READY_TIMEOUT_S, NotifyListener, Sitl, finish_fly, fly_config, pilot_rig, start_fly,
 )  # fmt: skip
 
 pytestmark = pytest.mark.timeout(180)
@@ -89,30 +89,17 @@ def test_disk_full_in_offboard_costs_the_log_not_the_flight(goal_seeker, tmp_pat
 def test_full_disk_answers_the_pilots_switch_to_offboard_with_hold(goal_seeker, tmp_path):
     """Pilot mode: the pilot's switch into offboard cannot be prevented, only answered — the runtime
     hovers and commands Hold at once, records the refusal, and never flies the policy."""
-    runtime_port, pilot_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
-    router = MavlinkRouter(runtime_port, pilot_port)
-    sitl = Sitl(tmp_path, router.port)
-    notify = NotifyListener(tmp_path / "notify")
-    pilot = Pilot(pilot_port)
-    proc = None
-    try:
+    with pilot_rig(tmp_path) as rig:
+        runtime_port, sitl, notify, pilot = rig.runtime_port, rig.sitl, rig.notify, rig.pilot
         config = fly_config(goal_seeker, runtime_port, sitl.camera_port, sitl.episode["goal_rel_home_enu_m"], tmp_path / "logs",
                             "max_episodes = 1")  # fmt: skip
-        proc = start_fly(tmp_path, config, notify, file_size_limit_bytes=NOTHING_FITS)
+        rig.proc = proc = start_fly(tmp_path, config, notify, file_size_limit_bytes=NOTHING_FITS)
         assert notify.ready.wait(READY_TIMEOUT_S), "no READY"
         pilot.wait(lambda: pilot.heartbeat is not None, 10.0, "vehicle heartbeat")
         pilot.arm_and_take_off(sitl.episode["takeoff_alt_m"])
         pilot.switch_to_offboard()
         code, summary = finish_fly(proc, tmp_path)
         pilot.wait(pilot.in_hold, 10.0, "Hold commanded by the runtime")
-    finally:
-        if proc is not None and proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        pilot.close()
-        sitl.stop()
-        router.close()
-        notify.close()
     log_text = (tmp_path / "fly.log").read_text(errors="replace")
     assert code == 0, f"{summary}\n{log_text[-3000:]}"
     (episode,) = summary["episodes"]

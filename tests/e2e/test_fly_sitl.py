@@ -20,7 +20,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from export.goal_seeker import export_goal_seeker
 from runtime.programs.replay import replay_log
 from sim.sitl_session import free_port
-from tests.e2e.fly_helpers import READY_TIMEOUT_S, MavlinkRouter, NotifyListener, Pilot, Sitl, finish_fly, fly_config, start_fly
+from tests.e2e.fly_helpers import READY_TIMEOUT_S, NotifyListener, Sitl, finish_fly, fly_config, pilot_rig, start_fly
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -86,15 +86,10 @@ def test_dry_run_lands_when_the_autopilot_refuses_offboard(goal_seeker, tmp_path
 
 
 def test_pilot_mode_waits_for_the_pilot_then_flies(goal_seeker, tmp_path):
-    runtime_port, pilot_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
-    router = MavlinkRouter(runtime_port, pilot_port)
-    sitl = Sitl(tmp_path, router.port)
-    notify = NotifyListener(tmp_path / "notify")
-    pilot = Pilot(pilot_port)
-    proc = None
-    try:
+    with pilot_rig(tmp_path) as rig:
+        runtime_port, sitl, notify, pilot = rig.runtime_port, rig.sitl, rig.notify, rig.pilot
         config = fly_config(goal_seeker, runtime_port, sitl.camera_port, _near_goal(sitl), tmp_path / "logs", "max_episodes = 1")
-        proc = start_fly(tmp_path, config, notify)
+        rig.proc = proc = start_fly(tmp_path, config, notify)
         assert notify.ready.wait(READY_TIMEOUT_S), f"no READY:\n{(tmp_path / 'fly.log').read_text()[-3000:]}"
         pilot.wait(lambda: pilot.heartbeat is not None, 10.0, "vehicle heartbeat")
         assert not pilot.heartbeat.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED  # the runtime did not arm
@@ -105,14 +100,6 @@ def test_pilot_mode_waits_for_the_pilot_then_flies(goal_seeker, tmp_path):
         pilot.switch_to_offboard()
         code, summary = finish_fly(proc, tmp_path)
         pilot.wait(pilot.in_hold, 10.0, "Hold after the episode")
-    finally:
-        if proc is not None and proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        pilot.close()
-        sitl.stop()
-        router.close()
-        notify.close()
     assert code == 0, f"exit {code}: {summary}\n{(tmp_path / 'fly.log').read_text()[-4000:]}"
     (episode,) = summary["episodes"]
     assert episode["outcome"] == "success" and episode["watchdog_trips"] == []

@@ -143,9 +143,9 @@ def _cmd_train_cmwae(args: argparse.Namespace) -> int:
     config = CmwaeTrainConfig(
         data_dir=args.data, out_dir=args.out, steps=args.steps, epochs=args.epochs if args.steps is None else None,
         lr_final=args.lr_final, resume=args.resume, max_wall_s=None if args.minutes is None else args.minutes * 60.0,
-        init_from=args.init_from,
+        init_from=args.init_from, anchor_from=args.anchor,
         **_given(args, "scheme", "modalities", "size", "batch_size", "lr", "mmd_weight", "seed", "device", "workers",
-                 "checkpoint_every", "precision", "corrupted_loss_weight"),
+                 "checkpoint_every", "precision", "corrupted_loss_weight", "anchor_weight"),
     )  # fmt: skip
     out = train_cmwae(config)
     print(f"checkpoint in {out}")
@@ -189,7 +189,7 @@ def _train_student(args: argparse.Namespace) -> int:
         teacher_dir=args.teacher, encoder_dir=args.encoder, out_dir=args.out, env_steps=args.steps,
         policy=POLICY_SIZES[args.size], resume=args.resume,
         max_wall_s=None if args.minutes is None else args.minutes * 60.0,
-        **_given(args, "device", "seed", "corruption", "minibatches", "max_level", "checkpoint_every", "precision",
+        **_given(args, "device", "seed", "corruption", "minibatches", "max_level", "checkpoint_every", "precision", "lr",
                  "beta_decay_env_steps", "projector_off_episode_fraction", num_envs="envs", rollout_steps="rollout"),
     )  # fmt: skip
     out = train_dagger(config)
@@ -449,7 +449,13 @@ def build_parser() -> argparse.ArgumentParser:
     cmwae.add_argument("--minutes", type=float, help="stop (with a checkpoint) after this wall-clock time")
     _config_option(cmwae, "--corrupted-loss-weight", "training.cmwae.train:CmwaeTrainConfig.corrupted_loss_weight", type=float,
                    help="weight of a corrupted image's reconstruction error against a pristine one's (1: the paper's mean)")  # fmt: skip
-    cmwae.add_argument("--init-from", metavar="CMWAE_DIR", help="start from this encoder checkpoint's weights (not its optimizer or step)")
+    start = cmwae.add_mutually_exclusive_group()
+    start.add_argument("--init-from", metavar="CMWAE_DIR", help="start from this encoder checkpoint's weights (not its optimizer or step)")
+    start.add_argument("--anchor", metavar="CMWAE_DIR",
+                       help="latent anchoring: start from this checkpoint, freeze its decoder, and pull the latent of "
+                            "corrupted depth toward its latent of the clean pair (keeps the clean reconstruction)")  # fmt: skip
+    _config_option(cmwae, "--anchor-weight", "training.cmwae.train:CmwaeTrainConfig.anchor_weight", type=float,
+                   help="weight of the latent-anchoring term (with --anchor)")
     add_precision(cmwae)
     cmwae.set_defaults(func=_cmd_train_cmwae)
 
@@ -472,7 +478,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="steps per rollout")  # fmt: skip
         _config_option(command, "--minibatches", "training.policy.ppo:PpoConfig.minibatches", *[f"{c}.minibatches" for c in dagger], type=int,
                        help="PPO minibatches per epoch, split over envs")  # fmt: skip
-        _config_option(command, "--lr", "training.policy.ppo:PpoConfig.lr", type=float, help="PPO learning rate")
+        _config_option(command, "--lr", "training.policy.ppo:PpoConfig.lr", *[f"{c}.lr" for c in dagger], type=float,
+                       help="learning rate, of PPO (of the student's imitation loss with --teacher); also applied on --resume")  # fmt: skip
         _config_option(command, "--start-level", "training.policy.env:CurriculumConfig.start_level", type=int, help="curriculum start level (obstacles)")
         _config_option(command, "--max-level", "training.policy.env:CurriculumConfig.max_level", *[f"{c}.max_level" for c in dagger], type=int,
                        help="curriculum cap")  # fmt: skip
@@ -649,13 +656,15 @@ def build_parser() -> argparse.ArgumentParser:
     bench_runtime = bench_sub.add_parser(
         "runtime",
         help="the control step: preprocessing, ONNX step (1/2 threads, CUDA/TensorRT when present), torch eager, "
-        "SITL grab->command; ratios against the targets",
+        "SITL end to end and grab->command; ratios against the targets",
         description="In one run: p50/p99 of preprocessing, the ONNX step with 1 and 2 intra-op threads (and its "
         "fp16/int8 variants found next to the model), the same networks in torch eager (with --encoder/--policy), "
-        "and grab->command in one short SITL flight per CPU model (fp32 and int8), the runtime pinned to a core of its "
-        "own with 1 intra-op thread and the SITL vehicle on the other cores, with the overhead split by stage; the model's FLOPs, this CPU's theoretical FP32 peak and its "
-        "achieved GEMM rate; and the ratios against the targets (ONNX <= 0.65x eager, <= 1.3x ideal, overhead "
-        "<= 3 ms p99, end to end <= 25 ms p99) with PASS/MISS.",
+        "and, in one short SITL flight per CPU model (fp32 and int8) with the runtime pinned to a core of its "
+        "own with 1 intra-op thread and the SITL vehicle on the other cores: end to end (the frame's capture -> "
+        "command), grab->command (the runtime's receipt of the frame -> command) with its overhead around the step "
+        "split by stage, and the frame's age when the step began; the model's FLOPs, this CPU's theoretical FP32 "
+        "peak and its achieved GEMM rate; and the ratios against the targets (ONNX <= 0.65x eager, <= 1.3x ideal, "
+        "grab->command minus the step <= 3 ms p99, end to end <= 25 ms p99) with PASS/MISS.",
     )
     bench_runtime.add_argument("--model", required=True, help="ONNX model with the runtime's contract (cmnav export)")
     bench_runtime.add_argument("--encoder", help="the CMWAE checkpoint the model was exported from (for the torch eager rows)")

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import gc
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -189,6 +190,10 @@ class FlightLoop:
         self._on_watchdog_event({"event": "start", "detail": repr(self.config.watchdog), "t_s": 0.0})
         log.info("episode start: goal %s (local ENU m), time limit %.1f s", np.round(self._goal_enu_m, 2), timeout_s)
         await self.watchdog.check_goal(self._goal_enu_m, time.monotonic_ns())
+        # What exists now (the model, the config, the imported libraries) lives for the whole
+        # flight: out of the garbage collector's sight, a collection during a step stays short.
+        gc.collect()
+        gc.freeze()
         policy = asyncio.create_task(self._policy_task(episode), name="policy")
         watchdog = asyncio.create_task(self._watchdog_task(), name="watchdog")
         self.interrupted = None
@@ -380,7 +385,9 @@ class FlightLoop:
         self._after_command(frame, result)
         self._memory.advance(result)
         stages_ms = {
-            "frame_wait": (t_start - frame.t_capture_ns) / _NS_PER_MS,  # the frame's age when the step began
+            "delivery": (frame.t_grab_ns - frame.t_capture_ns) / _NS_PER_MS,  # capture -> the source handed it over
+            "pickup": (t_start - frame.t_grab_ns) / _NS_PER_MS,  # handed over -> the loop began the step
+            "frame_age_at_step": (t_start - frame.t_capture_ns) / _NS_PER_MS,  # delivery + pickup
             "executor_in": (result.t_started_ns - t_start) / _NS_PER_MS,  # telemetry snapshot + hop to the worker thread
             "preprocess": (result.t_preprocessed_ns - result.t_started_ns) / _NS_PER_MS,
             "observation": (result.t_observed_ns - result.t_preprocessed_ns) / _NS_PER_MS,
@@ -390,7 +397,8 @@ class FlightLoop:
             "send": (t_cmd - t_checked) / _NS_PER_MS,  # the MAVSDK call, its executor hop included
             "command": (t_cmd - result.t_inferred_ns) / _NS_PER_MS,  # executor_out + checks + send
             "step": (t_cmd - t_start) / _NS_PER_MS,
-            "frame_age": (t_cmd - frame.t_capture_ns) / _NS_PER_MS,
+            "grab_to_command": (t_cmd - frame.t_grab_ns) / _NS_PER_MS,  # the runtime's share: pickup + step
+            "frame_age": (t_cmd - frame.t_capture_ns) / _NS_PER_MS,  # end to end: capture -> command
         }
         missed = stages_ms["step"] > CONTROL_PERIOD_S * 1000.0
         episode.steps += 1

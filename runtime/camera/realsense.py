@@ -141,6 +141,7 @@ class RealSenseSource:
             seq=int(depth_frame.get_frame_number()),
             meta={"device_timestamp_ms": device_ms, "timestamp_domain": str(domain),
                   "emitter_enabled": self.config.emitter_enabled},
+            t_received_ns=time.monotonic_ns(),  # aligned and converted: the runtime has it now
         )  # fmt: skip
 
     async def frames(self) -> AsyncIterator[Frame]:

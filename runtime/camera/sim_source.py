@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 from dataclasses import dataclass
 from typing import AsyncIterator
 
@@ -108,5 +109,5 @@ class SimCameraSource:
             header = await asyncio.wait_for(reader.readexactly(HEADER.size), self.read_timeout_s)
             seq, t_ns, width, height, meta_len = decode_header(header)
             payload = await asyncio.wait_for(reader.readexactly(payload_size(width, height, meta_len)), self.read_timeout_s)
-            self.latest.put(decode_payload(seq, t_ns, width, height, payload))
+            self.latest.put(decode_payload(seq, t_ns, width, height, payload, t_received_ns=time.monotonic_ns()))
             self.stats.frames += 1

@@ -55,7 +55,7 @@ def payload_size(width: int, height: int, meta_len: int) -> int:
     return width * height * 5 + meta_len
 
 
-def decode_payload(seq: int, t_ns: int, width: int, height: int, payload: bytes) -> Frame:
+def decode_payload(seq: int, t_ns: int, width: int, height: int, payload: bytes, t_received_ns: int | None = None) -> Frame:
     n = width * height
     depth = np.frombuffer(payload, dtype=np.float32, count=n).reshape(height, width)
     gray = np.frombuffer(payload, dtype=np.uint8, count=n, offset=4 * n).reshape(height, width)
@@ -63,4 +63,4 @@ def decode_payload(seq: int, t_ns: int, width: int, height: int, payload: bytes)
         meta = json.loads(payload[5 * n :].decode()) if len(payload) > 5 * n else {}
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
         raise FrameDecodeError(f"frame {seq}: bad meta JSON ({err})") from err
-    return Frame(t_capture_ns=t_ns, depth_m=depth, gray_u8=gray, seq=seq, meta=meta)
+    return Frame(t_capture_ns=t_ns, depth_m=depth, gray_u8=gray, seq=seq, meta=meta, t_received_ns=t_received_ns)

@@ -56,7 +56,7 @@ from ..log.reader import ReplayError
 from ..log.recorder import Recorder, RecorderError
 from ..log.rotation import new_log_path, rotate_logs
 from ..model import ModelLoadError, PolicyModel, check_outputs_finite, resolve_providers
-from ..service.affinity import pin_process
+from ..service.affinity import prepare_control_process
 from ..service.sdnotify import SystemdNotifier
 from ..service.shutdown import close_step, in_daemon_thread
 from ..service.signals import StopSignals, cancel_on_stop_signals, ignore_stop_signals
@@ -361,8 +361,7 @@ def run_fly(config_path: str | Path, print_json: bool = False, check_only: bool 
     config and load the model, then exit (0 or 2) without touching the vehicle or camera."""
     try:
         config = load_config(config_path)
-        if config.runtime.cpu_affinity:  # before any thread of ONNX Runtime or MAVSDK exists
-            pin_process(config.runtime.cpu_affinity)
+        prepare_control_process(config.runtime.cpu_affinity)  # before any thread of ONNX Runtime or MAVSDK exists
         if check_only:
             model = load_model(config)
     except (ConfigError, FlyError) as err:

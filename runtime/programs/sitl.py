@@ -46,7 +46,7 @@ from ..faults.injection import FaultyPolicy, shrink_geofence, shrink_geofence_at
 from ..flight import EpisodeResult, FlightLoop, log_task_failure
 from ..log.recorder import Recorder, RecorderError
 from ..model import ModelLoadError, PolicyModel, check_outputs_finite
-from ..service.affinity import pin_process
+from ..service.affinity import prepare_control_process
 from ..service.shutdown import close_step, in_daemon_thread
 from ..service.signals import StopSignals, cancel_on_stop_signals, ignore_stop_signals
 from ..state import VehicleError, VehicleState
@@ -127,8 +127,9 @@ async def fly_episode(args: argparse.Namespace, summary: dict, signals: StopSign
         recorder=RecorderConfig(log_dir=args.log_dir),
         runtime=args.process,
     )
-    if config.runtime.cpu_affinity:  # before ONNX Runtime's and MAVSDK's threads exist
-        summary["cpu_affinity"] = list(pin_process(config.runtime.cpu_affinity))
+    pinned = prepare_control_process(config.runtime.cpu_affinity)  # before ONNX Runtime's and MAVSDK's threads
+    if pinned is not None:
+        summary["cpu_affinity"] = list(pinned)
     try:
         model = PolicyModel(config.policy.model_path, config.policy.providers, config.policy.intra_op_threads)
         check_outputs_finite(model)

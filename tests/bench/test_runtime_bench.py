@@ -73,7 +73,7 @@ def test_bench_runtime_quick_json(exported):
     assert len(targets) == 4
     for name in ("ONNX step / torch eager", "ONNX step / ideal"):
         assert targets[name]["status"] in ("PASS", "MISS") and targets[name]["measured"] > 0
-    for name in ("grab->command minus ONNX step", "grab->command end to end"):
+    for name in ("grab->command minus ONNX step", "end to end, capture->command"):
         assert targets[name]["status"] == "SKIP" and targets[name]["why_skipped"] == "--no-sitl"
 
     table = format_runtime_bench(result)
@@ -150,10 +150,16 @@ def test_sitl_flights_per_variant_with_the_runtime_pinned(exported):
         assert flight["model"] == str(model if variant == "fp32" else variant_path(model, variant)) and flight["steps"] > 0
         if len(allowed) >= 2:  # the runtime pinned itself (runtime.cpu_affinity) and said so in its summary
             assert flight["pinning"]["runtime_cpus"] == allowed[-1:] and flight["pinning"]["runtime_intra_op_threads"] == 1
-        assert {"frame_wait", "executor_in", "preprocess", "observation", "executor_out", "checks", "send"} <= set(flight["stages"])
-        for stats in (flight["grab_to_command"], flight["overhead"], *flight["stages"].values()):
+        assert set(flight["stages"]) == {"pickup", "executor_in", "preprocess", "observation", "executor_out", "checks", "send"}
+        assert set(flight["frame_age"]) == {"delivery", "frame_age_at_step"}
+        for stats in (flight["end_to_end"], flight["grab_to_command"], flight["overhead"], *flight["stages"].values(),
+                      *flight["frame_age"].values()):  # fmt: skip
             assert STATS <= set(stats)
-    names = [t["name"] for t in result["targets"] if t["name"].startswith("grab->command")]
+        # the SITL camera link stamps receipt: the frame reaches the runtime after its capture, and the
+        # runtime's share (grab -> command) is the end to end less the delivery
+        assert flight["frame_age"]["delivery"]["best_ms"] > 0.0
+        assert flight["grab_to_command"]["p50_ms"] < flight["end_to_end"]["p50_ms"]
+    names = [t["name"] for t in result["targets"] if t["name"].startswith(("grab->command", "end to end"))]
     assert len(names) == 4 and all(any(f", {v};" in n for n in names) for v in ("fp32", "int8"))
     table = format_runtime_bench(result)
     assert "| SITL int8 stage executor_out |" in table and "SITL flight fp32:" in table

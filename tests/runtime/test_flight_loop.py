@@ -132,8 +132,9 @@ def test_reaches_goal_then_hover_and_hold(goal_seeker, tmp_path):
     assert result.outcome == "success", result
     assert result.final_distance_m < 1.0 and result.watchdog_trips == []
     assert result.steps > 5 and result.step_ms["p50"] is not None
-    assert set(result.stage_ms) == {"frame_wait", "executor_in", "preprocess", "observation", "inference", "executor_out",
-                                    "checks", "send", "command", "step", "frame_age"}
+    assert set(result.stage_ms) == {"delivery", "pickup", "frame_age_at_step", "executor_in", "preprocess", "observation",
+                                    "inference", "executor_out", "checks", "send", "command", "step", "grab_to_command",
+                                    "frame_age"}  # fmt: skip
     assert vehicle.yaw > 0.1  # turned left toward the goal
     assert vehicle.setpoints[-1] == HOVER and vehicle.holds == 1
     assert recorder.stats.written > 0 and recorder.stats.dropped == 0

@@ -245,3 +245,19 @@ def test_a_disk_that_fills_while_recording_costs_records_only(full_tmpfs):
         time.sleep(0.01)
     rec.close()
     assert rec.stats.log_error is not None and rec.stats.dropped > 0 and rec.stats.written > 0
+
+
+def test_writer_thread_yields_the_core_to_the_control_path(tmp_path):
+    """The writer encodes and compresses frames on the runtime's pinned core: it runs SCHED_IDLE,
+    so the event loop and the step's worker never wait behind it for the CPU."""
+    rec = Recorder(tmp_path / "flight.mcap", RecorderConfig(flush_period_s=0.2))
+    try:
+        _log_one_step(rec, 1, time.monotonic_ns())
+        deadline = time.monotonic() + 5.0
+        while rec.stats.written == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert rec.stats.written > 0
+        assert os.sched_getscheduler(rec._thread.native_id) == os.SCHED_IDLE
+        assert os.sched_getscheduler(0) == os.SCHED_OTHER  # the caller is untouched
+    finally:
+        rec.close()

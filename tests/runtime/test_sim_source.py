@@ -1,4 +1,5 @@
 import asyncio
+import time
 
 import numpy as np
 
@@ -64,6 +65,7 @@ def test_reads_frames_and_keeps_latest():
         server = FakeVehicleCamera([[encode_frame(_frame(i)) for i in range(1, 6)] + [b""]])
         port = await server.start()
         source = SimCameraSource(port, reconnect_delay_s=0.02)
+        t_before_ns = time.monotonic_ns()
         await source.start()
         try:
             first = await _collect(source, 1)
@@ -71,6 +73,9 @@ def test_reads_frames_and_keeps_latest():
             await asyncio.sleep(0.2)  # the rest arrives while nobody reads
             latest = source.latest.latest().value
             assert latest.seq == 5 and latest.t_capture_ns == 1_005
+            # the receipt is stamped on this host's clock when the frame came off the link
+            assert t_before_ns < first[0].t_received_ns <= latest.t_received_ns <= time.monotonic_ns()
+            assert latest.t_grab_ns == latest.t_received_ns
             assert float(latest.depth_m[0, 0]) == 6.0 and int(latest.gray_u8[0, 0]) == 5
             assert source.stats.frames == 5 and source.stats.decode_errors == 0
         finally:

@@ -1,5 +1,6 @@
 """`cmnav train cmwae` and `cmnav eval cmwae` for a few steps on tiny data the test generates."""
 
+import dataclasses
 import json
 import os
 import socket
@@ -9,10 +10,12 @@ import sys
 import pytest
 import torch
 
-from training.checkpoint import MAX_SHARD_BYTES, load_train_state, read_card
+from training.checkpoint import MAX_SHARD_BYTES, load_train_state, read_card, save_weights
 from training.cmwae.model import Cmwae, make_config
 from training.cmwae.train import CmwaeTrainConfig, learning_rate, load_cmwae
+from sim.degradation import PatchScheme, corrupt_depth, patch_masks
 from training.data.generate import DatasetSpec, generate_dataset
+from training.data.tartanair import GrayDepthDataset
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -96,6 +99,60 @@ def test_depth_only_baseline_uses_the_same_command(dataset, tmp_path):
     _cmnav(*TRAIN, "--data", str(dataset), "--scheme", "none", "--modalities", "depth", "--out", str(out), "--steps", "2")
     model, card = load_cmwae(out)
     assert tuple(card["config"]["modalities"]) == ("depth",) and "gray" not in model.encoder.features
+
+
+def _latent_gap(encoder, base, gray, depth, corrupted) -> float:
+    """Mean square distance of ``encoder``'s latent of corrupted depth from ``base``'s of clean depth."""
+    with torch.no_grad():
+        return float(((encoder(gray, corrupted) - base(gray, depth)) ** 2).mean())
+
+
+def test_latent_anchoring_pulls_corrupted_latents_to_clean_ones_with_the_decoder_fixed(dataset, tmp_path):
+    base_dir, out = tmp_path / "base", tmp_path / "anchored"
+    # The anchor: a tiny CMWAE whose latent responds to depth (a tiny one trained a few steps hardly
+    # does), so that corruption moves it.  A small MMD weight: the toy's latent is not the prior's.
+    torch.manual_seed(0)
+    config = make_config("tiny")
+    base = Cmwae(config)
+    with torch.no_grad():
+        base.encoder.features["depth"][0].weight.mul_(3.0)
+        base.encoder.embed["depth"][1].weight.mul_(30.0)
+    save_weights(base_dir, base, "cmwae", dataclasses.asdict(config), 0, {})
+    _cmnav(*TRAIN, "--data", str(dataset), "--scheme", "s2", "--out", str(out), "--steps", "40", "--lr", "1e-3",
+           "--anchor", str(base_dir), "--anchor-weight", "20", "--mmd-weight", "0.01", "--precision", "fp32")  # fmt: skip
+    base, _ = load_cmwae(base_dir)
+    anchored, card = load_cmwae(out)
+    assert card["meta"]["train"]["anchor_from"] == str(base_dir) and card["meta"]["train"]["anchor_weight"] == 20.0
+    # the decoder is the anchor's, bit for bit; the encoder learnt
+    for key, value in base.decoder.state_dict().items():
+        assert torch.equal(anchored.decoder.state_dict()[key], value), key
+    assert any(not torch.equal(anchored.encoder.state_dict()[k], v) for k, v in base.encoder.state_dict().items())
+    # On the images it trained on, with squares at 50 % coverage, the latent of corrupted depth came
+    # closer to the anchor's latent of the clean pair; the clean latent stayed near the anchor's.
+    gray, depth = (torch.stack(t) for t in zip(*[GrayDepthDataset(dataset, "train")[i] for i in range(16)]))
+    masks = patch_masks(torch.full((16,), 0.5), PatchScheme(40, 40, 0.5, 0.5), torch.Generator().manual_seed(0))
+    corrupted = corrupt_depth(depth, masks)
+    before = _latent_gap(base.encoder, base.encoder, gray, depth, corrupted)
+    after = _latent_gap(anchored.encoder, base.encoder, gray, depth, corrupted)
+    clean_drift = _latent_gap(anchored.encoder, base.encoder, gray, depth, depth)
+    assert after < 0.5 * before and clean_drift < before, (before, after, clean_drift)
+
+
+def test_latent_anchoring_refuses_a_wrong_anchor(dataset, tmp_path):
+    base_dir = tmp_path / "tiny"
+    _cmnav(*TRAIN, "--data", str(dataset), "--out", str(base_dir), "--steps", "1")
+    wrong = subprocess.run([sys.executable, "-m", "cmnav", *TRAIN, "--data", str(dataset), "--out", str(tmp_path / "x"),
+                            "--steps", "1", "--anchor", str(base_dir), "--modalities", "depth"],
+                           capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert wrong.returncode != 0 and "is not the one --size tiny --modalities depth builds" in wrong.stderr
+    both = subprocess.run([sys.executable, "-m", "cmnav", *TRAIN, "--data", str(dataset), "--out", str(tmp_path / "y"),
+                           "--steps", "1", "--anchor", str(base_dir), "--init-from", str(base_dir)],
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert both.returncode == 2 and "not allowed with argument" in both.stderr
+    with pytest.raises(ValueError, match="anchor_from starts from the anchor's weights"):
+        CmwaeTrainConfig(data_dir="d", out_dir="o", steps=1, anchor_from="a", init_from="b").validate()
+    with pytest.raises(ValueError, match="anchor_weight"):
+        CmwaeTrainConfig(data_dir="d", out_dir="o", steps=1, anchor_weight=0.0).validate()
 
 
 def test_fp16_shards_roundtrip(tmp_path):

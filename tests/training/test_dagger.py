@@ -18,7 +18,7 @@ from export.policy_onnx import PARITY_TOLERANCE, ExportError, export_policy, loa
 from runtime.contract import constants as c
 from runtime.contract.constants import STATE_DIM
 from runtime.model import PolicyModel
-from training.checkpoint import save_weights
+from training.checkpoint import load_train_state, save_weights
 from training.cmwae.model import Cmwae, make_config
 from training.policy.dagger import DaggerConfig, collect, distill, load_teacher
 from training.policy.env import CurriculumConfig, NavEnv, NavEnvConfig
@@ -152,6 +152,12 @@ def test_the_distilled_student_exports_and_the_runtime_loads_it(trained, tmp_pat
     _cmnav("train", "policy", "--teacher", str(trained / "teacher"), "--encoder", str(trained / "enc"), "--out", str(out),
            "--size", "tiny", "--envs", "4", "--rollout", "8", "--minibatches", "2", "--steps", "64", "--precision", "fp32",
            "--beta-decay-env-steps", "32")  # fmt: skip
+    assert load_train_state(out)["optimizer"]["param_groups"][0]["lr"] == pytest.approx(DaggerConfig.lr)
+    # resumed with another --lr: the student's optimizer takes it
+    _cmnav("train", "policy", "--teacher", str(trained / "teacher"), "--encoder", str(trained / "enc"), "--out", str(out),
+           "--size", "tiny", "--envs", "4", "--rollout", "8", "--minibatches", "2", "--steps", "96", "--precision", "fp32",
+           "--beta-decay-env-steps", "32", "--resume", "--lr", "1e-4")  # fmt: skip
+    assert load_train_state(out)["optimizer"]["param_groups"][0]["lr"] == pytest.approx(1e-4)
     card = json.loads((out / "model.json").read_text())
     assert card["meta"]["role"] == "policy" and card["meta"]["algorithm"] == "dagger"
     assert card["meta"]["teacher_fingerprint"] and card["config"]["obs_dim"] == 79

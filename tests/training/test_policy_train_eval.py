@@ -100,9 +100,12 @@ def test_train_policy_moves_the_curriculum_checkpoints_resumes_and_evaluates(enc
     assert list((out / "tensorboard").glob("events.out.tfevents.*"))
     first = {k: v.clone() for k, v in load_policy(out)[0].state_dict().items()}
 
-    _cmnav(*TRAIN, "--encoder", str(encoders / "enc"), "--out", str(out), "--steps", "2048", "--resume")
+    assert load_train_state(out)["optimizer"]["param_groups"][0]["lr"] == pytest.approx(3e-4)
+    # --lr applies to the resumed run too (the optimizer state alone would keep the old rate)
+    _cmnav(*TRAIN, "--encoder", str(encoders / "enc"), "--out", str(out), "--steps", "2048", "--resume", "--lr", "1e-4")
     card = read_card(out, "policy")
     assert card["step"] == 2048 and card["meta"]["iteration"] == 16
+    assert load_train_state(out)["optimizer"]["param_groups"][0]["lr"] == pytest.approx(1e-4)
     resumed = load_policy(out)[0].state_dict()
     assert any(not torch.equal(first[k], resumed[k]) for k in first if k != "obs_norm.count")
 

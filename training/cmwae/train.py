@@ -20,7 +20,7 @@ from sim.degradation import SCHEMES, corrupt_depth, corrupt_with_scheme, evaluat
 from ..checkpoint import load_train_state, load_weights, read_card, save_train_state, save_weights
 from ..data.tartanair import GrayDepthDataset
 from ..distributed import DistInfo, all_reduce_mean, log_weights_digest, run_distributed, wall_budget_spent
-from ..fastpath import PRECISIONS, FastPath, choose_fast_path
+from ..fastpath import PRECISIONS, FastPath, FrozenEncoder, choose_fast_path
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .loss import cmwae_loss
@@ -49,6 +49,13 @@ class CmwaeTrainConfig:
     corrupted_loss_weight: float = 1.0
     precision: str = "auto"  # training.fastpath: bf16 autocast (fp32 master weights and loss) where the CPU has it
     init_from: str | None = None  # start from this checkpoint's weights (not its optimizer or step)
+    # Latent anchoring: fine-tune only the encoder of this CMWAE checkpoint (its decoder frozen) so
+    # that the latent of corrupted depth comes close to the anchor's latent of the same pair with
+    # clean depth: loss += anchor_weight * mean (z - z_anchor(gray, clean depth))^2.  The decoder
+    # and the clean latents stay where they were, so the clean reconstruction stays, and what is
+    # learnt is depth-from-gray where depth is missing.  Starts from the anchor's weights.
+    anchor_from: str | None = None
+    anchor_weight: float = 1.0
     seed: int = 0
     device: str = "cpu"
     workers: int = 2
@@ -72,6 +79,10 @@ class CmwaeTrainConfig:
             raise ValueError(f"precision={self.precision!r} must be one of {PRECISIONS}")
         if not 0.0 < self.corrupted_loss_weight <= 100.0:
             raise ValueError(f"corrupted_loss_weight={self.corrupted_loss_weight} must lie in (0, 100]")
+        if not 0.0 < self.anchor_weight <= 1000.0:
+            raise ValueError(f"anchor_weight={self.anchor_weight} must lie in (0, 1000]")
+        if self.anchor_from is not None and self.init_from is not None:
+            raise ValueError("anchor_from starts from the anchor's weights: give it or init_from, not both")
         if self.lr <= 0 or (self.lr_final is not None and not 0 <= self.lr_final <= self.lr):
             raise ValueError(f"lr={self.lr}, lr_final={self.lr_final}: need lr > 0 and 0 <= lr_final <= lr")
 
@@ -135,7 +146,10 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
     model_config = make_config(config.size, config.modalities)
     path = choose_fast_path(config.precision, device)
     model = path.prepare_trained(Cmwae(model_config).to(device))
-    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
+    anchor = _anchor_encoder(config, model_config, path, device)
+    if anchor is not None:
+        model.decoder.requires_grad_(False)
+    optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=config.lr)
     corruption_generator = torch.Generator().manual_seed(config.seed * 1000 + info.rank)
     loss_generator = torch.Generator(device=device).manual_seed(config.seed * 1000 + info.rank + 1)
     step, epoch = 0, 0
@@ -146,13 +160,10 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
         step, epoch = state["step"], state["epoch"]
         corruption_generator.set_state(state["corruption_rng"])
         log.info("resumed %s at step %d", out, step)
-    elif config.init_from is not None:
-        init_card = read_card(config.init_from, CHECKPOINT_KIND)
-        if _config_from_card(init_card) != model_config:
-            raise ValueError(f"--init-from {config.init_from}: its network ({init_card['config']}) is not the one "
-                             f"--size {config.size} --modalities {','.join(config.modalities)} builds")  # fmt: skip
-        load_weights(config.init_from, model)
-        log.info("initialised from %s (step %s)", config.init_from, init_card.get("step"))
+    elif (init_from := config.init_from or config.anchor_from) is not None:
+        init_card = _read_matching_card(init_from, model_config, config)
+        load_weights(init_from, model)
+        log.info("initialised from %s (step %s)", init_from, init_card.get("step"))
     if config.resume and state is None:
         log.warning("--resume: no training state in %s, starting %s", out,
                     "from scratch" if config.init_from is None else f"from {config.init_from}")  # fmt: skip
@@ -188,6 +199,11 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
                 z, recon = ddp_model(gray, corrupted)
             weights = torch.where(was_corrupted, config.corrupted_loss_weight, 1.0).to(device)
             losses = cmwae_loss(recon.float(), depth, z.float(), config.mmd_weight, loss_generator, weights)
+            if anchor is not None:
+                with torch.no_grad():
+                    z_anchor = anchor(gray, path.image(depth))
+                losses["anchor"] = ((z.float() - z_anchor) ** 2).mean()
+                losses["loss"] = losses["loss"] + config.anchor_weight * losses["anchor"]
             lr = learning_rate(config, step, total_steps)
             for group in optimizer.param_groups:
                 group["lr"] = lr  # also overrides the rate a resumed optimizer state carries
@@ -204,7 +220,8 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
                                        | {"train/images_per_s": images / (now - t_last), "train/lr": lr})  # fmt: skip
                 t_last, images = now, 0
                 if progress is not None:
-                    progress.update(0, loss=values["loss"], mse=values["recon_mse"], mmd=values["mmd"])
+                    progress.update(0, loss=values["loss"], mse=values["recon_mse"], mmd=values["mmd"],
+                                    **({"anchor": values["anchor"]} if "anchor" in values else {}))
             if progress is not None:
                 progress.update(1)
             if step % config.checkpoint_every == 0 and step < total_steps:
@@ -221,6 +238,26 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
     if writer is not None:
         writer.close()
     return out
+
+
+def _read_matching_card(ckpt_dir: str, model_config: CmwaeConfig, config: CmwaeTrainConfig) -> dict:
+    """The card of a checkpoint to start from, refused unless its network is the one being trained."""
+    card = read_card(ckpt_dir, CHECKPOINT_KIND)
+    if _config_from_card(card) != model_config:
+        raise ValueError(f"{ckpt_dir}: its network ({card['config']}) is not the one "
+                         f"--size {config.size} --modalities {','.join(config.modalities)} builds")  # fmt: skip
+    return card
+
+
+def _anchor_encoder(config: CmwaeTrainConfig, model_config: CmwaeConfig, path: FastPath,
+                    device: torch.device) -> FrozenEncoder | None:  # fmt: skip
+    """The anchor's frozen encoder on the fast path, or None without --anchor."""
+    if config.anchor_from is None:
+        return None
+    _read_matching_card(config.anchor_from, model_config, config)
+    anchor = Cmwae(model_config)
+    load_weights(config.anchor_from, anchor)
+    return FrozenEncoder(anchor.encoder.to(device), path)
 
 
 def _config_from_card(card: dict) -> CmwaeConfig:

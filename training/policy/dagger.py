@@ -209,6 +209,8 @@ def train_dagger(config: DaggerConfig) -> Path:
                              f"{config.encoder_dir} is {encoder_fingerprint}; resume with the same --encoder or start a new --out")  # fmt: skip
         student.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
+        for group in optimizer.param_groups:
+            group["lr"] = config.lr  # the configured rate, not the one the optimizer state carries
         env.generator.set_state(state["env_rng"])
         generator.set_state(state["rng"])
         iteration, env_steps = state["iteration"], state["env_steps"]

@@ -104,6 +104,8 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
             )
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
+        for group in optimizer.param_groups:
+            group["lr"] = config.ppo.lr  # --lr also applies to a resumed run (the optimizer state carries the old one)
         normalizer.load_state_dict(state["return_normalizer"])
         env.curriculum.load_state_dict(state["curriculum"])
         env.generator.set_state(state["env_rng"])

@@ -29,6 +29,28 @@ from .contract.frames import vehicle_to_world_enu, world_enu_to_vehicle
 _NS_PER_S = 1_000_000_000
 
 
+class OverBound:
+    """Since when a quantity has stayed over its bound without a break: the watchdog's checks that
+    trip on "over the bound for longer than a window" (tracking error, tilt, invalid depth) share it."""
+
+    def __init__(self) -> None:
+        self.since_ns: int | None = None  # None: not over the bound now
+
+    def update(self, t_ns: int, over: bool) -> None:
+        """The quantity measured at ``t_ns`` is (``over``) or is not over its bound."""
+        if not over:
+            self.since_ns = None
+        elif self.since_ns is None:
+            self.since_ns = t_ns
+
+    def reset(self) -> None:
+        self.since_ns = None
+
+    def held_past(self, window_ns: int, now_ns: int) -> bool:
+        """Over the bound, without a break, for longer than ``window_ns`` at ``now_ns``."""
+        return self.since_ns is not None and now_ns - self.since_ns > window_ns
+
+
 @dataclass(frozen=True)
 class TrackingStatus:
     """The latest comparison: error in the vehicle frame V (m/s) and since when it has been above
@@ -61,7 +83,7 @@ class TrackingMonitor:
         self._ref_enu_m_s = np.zeros(3)
         self._cmd_vehicle_m_s = np.zeros(3)
         self._yaw_enu_rad = 0.0
-        self._over_since_ns: int | None = None
+        self._over = OverBound()
 
     def start(self, t_ns: int, vel_enu_m_s: np.ndarray, yaw_enu_rad: float) -> None:
         """Supervision starts at ``t_ns``: the reference is the measured velocity, the command zero
@@ -71,7 +93,7 @@ class TrackingMonitor:
         self._ref_enu_m_s = vel.copy() if np.all(np.isfinite(vel)) else np.zeros(3)
         self._cmd_vehicle_m_s = np.zeros(3)
         self._yaw_enu_rad = float(yaw_enu_rad)
-        self._over_since_ns = None
+        self._over.reset()
         self._recent.clear()
         self.sustained_peak_m_s = 0.0
 
@@ -87,12 +109,9 @@ class TrackingMonitor:
         error_enu = self._ref_enu_m_s - np.asarray(vel_enu_m_s, dtype=np.float64)
         error_v = world_enu_to_vehicle(error_enu, self._yaw_enu_rad)
         norm = float(np.linalg.norm(error_v))
-        if not math.isfinite(norm) or norm <= self.error_max_m_s:
-            self._over_since_ns = None
-        elif self._over_since_ns is None:
-            self._over_since_ns = t_ns
+        self._over.update(t_ns, math.isfinite(norm) and norm > self.error_max_m_s)
         self._note_sustained(t_ns, norm if math.isfinite(norm) else 0.0)
-        return TrackingStatus(t_ns, error_v, self._over_since_ns)
+        return TrackingStatus(t_ns, error_v, self._over.since_ns)
 
     def _note_sustained(self, t_ns: int, error_m_s: float) -> None:
         """Track ``sustained_peak_m_s``: the largest error that held for a whole window (the

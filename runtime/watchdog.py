@@ -39,7 +39,7 @@ import numpy as np
 
 from .command_gate import CommandGate
 from .config import WatchdogConfig
-from .tracking import TrackingMonitor, TrackingStatus, tilt_rad
+from .tracking import OverBound, TrackingMonitor, TrackingStatus, tilt_rad
 from .state import MODE_OFFBOARD, VehicleError, VehicleState
 
 log = logging.getLogger(__name__)
@@ -125,13 +125,13 @@ class Watchdog:
         self._offboard_seen = False
         self._start_xy_enu_m = np.zeros(2)
         self._home_z_enu_m = 0.0
-        self._invalid_since_ns: int | None = None
+        self._depth_invalid = OverBound()
         self._hold_pending = False
         self._tracking = TrackingMonitor(config.tracking_error_max_m_s, config.tracking_lag_s, config.tracking_window_s)
         self._tracking_status: TrackingStatus | None = None
         self._t_posvel_seen_ns = 0
         self._t_att_seen_ns = 0
-        self._tilt_over_since_ns: int | None = None
+        self._tilt_over = OverBound()
         self._tilt_rad = 0.0
         self._status_seq_seen = 0
         self._armed_seen = False
@@ -178,7 +178,7 @@ class Watchdog:
         self._offboard_seen = state.flight_mode == MODE_OFFBOARD
         self._start_xy_enu_m = np.asarray(state.pos_enu_m[:2], dtype=np.float64).copy()
         self._home_z_enu_m = float(state.home_enu_m[2])
-        self._invalid_since_ns = None
+        self._depth_invalid.reset()
         self._hold_pending = False
         cfg = self.config
         self._tracking = TrackingMonitor(cfg.tracking_error_max_m_s, cfg.tracking_lag_s, cfg.tracking_window_s)
@@ -186,7 +186,7 @@ class Watchdog:
         self._tracking_status = None
         self._t_posvel_seen_ns = state.t_posvel_ns
         self._t_att_seen_ns = 0
-        self._tilt_over_since_ns = None
+        self._tilt_over.reset()
         # Only what the autopilot says from now on counts; it must be armed once to be disarmed.
         self._status_seq_seen = state.status_texts[-1].seq if state.status_texts else 0
         self._armed_seen = state.armed
@@ -232,11 +232,7 @@ class Watchdog:
 
     def note_depth(self, t_capture_ns: int, invalid_frac: float) -> None:
         """Record each frame's raw invalid-depth fraction for the too-long-invalid check."""
-        if invalid_frac > self.config.depth_invalid_frac_max:
-            if self._invalid_since_ns is None:
-                self._invalid_since_ns = t_capture_ns
-        else:
-            self._invalid_since_ns = None
+        self._depth_invalid.update(t_capture_ns, invalid_frac > self.config.depth_invalid_frac_max)
 
     async def check_action(self, action: np.ndarray, t_step_started_ns: int, now_ns: int) -> Trip | None:
         """Before a command is sent: trip on a NaN/Inf action or a step past its trip limit."""
@@ -309,15 +305,15 @@ class Watchdog:
                 f"position/attitude {(now - v.t_telemetry_ns) / _NS_PER_MS:.0f} ms old > {cfg.telemetry_stale_ms:.0f} ms",
                 t_tel_ref + tel_limit, now,
             )  # fmt: skip
-        if self._invalid_since_ns is not None:
-            invalid_limit = int(cfg.depth_invalid_max_s * _NS_PER_S)
-            if now - self._invalid_since_ns > invalid_limit:
-                return await self.trip(
-                    TripCause.DEPTH_INVALID,
-                    f"depth invalid fraction > {cfg.depth_invalid_frac_max:.2f} for "
-                    f"{(now - self._invalid_since_ns) / _NS_PER_S:.1f} s > {cfg.depth_invalid_max_s:.1f} s",
-                    self._invalid_since_ns + invalid_limit, now,
-                )  # fmt: skip
+        invalid_limit = int(cfg.depth_invalid_max_s * _NS_PER_S)
+        if self._depth_invalid.held_past(invalid_limit, now):
+            since = self._depth_invalid.since_ns
+            return await self.trip(
+                TripCause.DEPTH_INVALID,
+                f"depth invalid fraction > {cfg.depth_invalid_frac_max:.2f} for "
+                f"{(now - since) / _NS_PER_S:.1f} s > {cfg.depth_invalid_max_s:.1f} s",
+                since + invalid_limit, now,
+            )  # fmt: skip
         if v.t_posvel_ns:
             dist_m = float(np.linalg.norm(np.asarray(v.pos_enu_m[:2]) - self._start_xy_enu_m))
             height_m = float(v.pos_enu_m[2]) - self._home_z_enu_m
@@ -368,17 +364,15 @@ class Watchdog:
         if v.t_att_ns > self._t_att_seen_ns:
             self._t_att_seen_ns = v.t_att_ns
             self._tilt_rad = tilt_rad(v.quat_enu_flu)
-            if not math.degrees(self._tilt_rad) > cfg.tilt_max_deg:
-                self._tilt_over_since_ns = None
-            elif self._tilt_over_since_ns is None:
-                self._tilt_over_since_ns = v.t_att_ns
+            self._tilt_over.update(v.t_att_ns, math.degrees(self._tilt_rad) > cfg.tilt_max_deg)
         tilt_window_ns = int(cfg.tilt_window_s * _NS_PER_S)
-        if self._tilt_over_since_ns is not None and now - self._tilt_over_since_ns > tilt_window_ns:
+        if self._tilt_over.held_past(tilt_window_ns, now):
+            since = self._tilt_over.since_ns
             return await self.trip(
                 TripCause.ATTITUDE,
                 f"tilt {math.degrees(self._tilt_rad):.0f} deg > {cfg.tilt_max_deg:.0f} deg for "
-                f"{(now - self._tilt_over_since_ns) / _NS_PER_S:.2f} s > {cfg.tilt_window_s:.2f} s: flipped or tumbling",
-                self._tilt_over_since_ns + tilt_window_ns, now,
+                f"{(now - since) / _NS_PER_S:.2f} s > {cfg.tilt_window_s:.2f} s: flipped or tumbling",
+                since + tilt_window_ns, now,
             )  # fmt: skip
         return None
 

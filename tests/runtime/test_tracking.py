@@ -14,7 +14,7 @@ from runtime.config import ConfigError, WatchdogConfig
 from runtime.contract import ActionLimits, action_to_velocity_flu
 from runtime.contract.constants import CONTROL_PERIOD_S, MAX_YAW_RATE_RAD_S
 from runtime.contract.frames import quat_from_euler, vehicle_to_world_enu
-from runtime.tracking import TrackingMonitor, tilt_rad
+from runtime.tracking import OverBound, TrackingMonitor, tilt_rad
 
 NS = 1_000_000_000
 T0 = 50 * NS
@@ -177,3 +177,17 @@ def test_a_vehicle_that_stops_following_trips_after_the_window(cruise, turns, st
     amplitude = 1.0 / math.hypot(1.0, MAX_YAW_RATE_RAD_S * CFG.tracking_lag_s)
     rise_s = CFG.tracking_lag_s * math.log(amplitude / (amplitude - CFG.tracking_error_max_m_s))
     assert trip_s <= stuck_at_s + rise_s + CFG.tracking_window_s + 2 * TICK_S
+
+
+def test_over_bound_holds_only_without_a_break():
+    over = OverBound()
+    assert not over.held_past(0, 10)
+    over.update(100, True)
+    over.update(150, True)  # still over: the start stays at 100
+    assert over.since_ns == 100 and not over.held_past(60, 160) and over.held_past(60, 161)
+    over.update(170, False)  # a break resets it
+    assert over.since_ns is None and not over.held_past(0, 10_000)
+    over.update(200, True)
+    assert over.since_ns == 200
+    over.reset()
+    assert over.since_ns is None

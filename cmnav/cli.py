@@ -159,12 +159,12 @@ def _policy_train_config(args: argparse.Namespace, encoder_dir: str | None, corr
     from training.policy.train import PolicyTrainConfig
 
     return PolicyTrainConfig(
-        encoder_dir=encoder_dir, out_dir=args.out, env_steps=args.steps, policy=POLICY_SIZES[args.size],
+        encoder_dir=encoder_dir, out_dir=args.out, policy=POLICY_SIZES[args.size],
         **({} if corruption is None else {"corruption": corruption}),
         ppo=PpoConfig(**_given(args, "minibatches", "lr", rollout_steps="rollout")),
         curriculum=CurriculumConfig(**_given(args, "start_level", "max_level", window_episodes="curriculum_window")),
         resume=args.resume, init_from=args.init_from, max_wall_s=None if args.minutes is None else args.minutes * 60.0,
-        **_given(args, "device", "seed", "checkpoint_every", "precision", num_envs="envs"),
+        **_given(args, "device", "seed", "checkpoint_every", "precision", num_envs="envs", env_steps="steps"),
     )  # fmt: skip
 
 
@@ -186,11 +186,12 @@ def _train_student(args: argparse.Namespace) -> int:
         print("cmnav train policy: --init-from is for PPO fine-tuning, not with --teacher", file=sys.stderr)
         return 2
     config = DaggerConfig(
-        teacher_dir=args.teacher, encoder_dir=args.encoder, out_dir=args.out, env_steps=args.steps,
+        teacher_dir=args.teacher, encoder_dir=args.encoder, out_dir=args.out,
         policy=POLICY_SIZES[args.size], resume=args.resume,
         max_wall_s=None if args.minutes is None else args.minutes * 60.0,
         **_given(args, "device", "seed", "corruption", "minibatches", "max_level", "checkpoint_every", "precision", "lr",
-                 "beta_decay_env_steps", "projector_off_episode_fraction", num_envs="envs", rollout_steps="rollout"),
+                 "beta_decay_env_steps", "projector_off_episode_fraction", num_envs="envs", rollout_steps="rollout",
+                 env_steps="steps"),
     )  # fmt: skip
     out = train_dagger(config)
     print(f"student checkpoint in {out}")
@@ -464,7 +465,8 @@ def build_parser() -> argparse.ArgumentParser:
         ``envs``: the command's own default number of envs (None: the config's)."""
         dagger = ("training.policy.dagger:DaggerConfig",) if student else ()
         command.add_argument("--out", required=True, help="checkpoint directory (model.json + fp16 shards + train state)")
-        command.add_argument("--steps", type=int, default=1_000_000, help="env steps in total (default 1e6)")
+        _config_option(command, "--steps", "training.policy.train:PolicyTrainConfig.env_steps", *[f"{c}.env_steps" for c in dagger],
+                       type=int, help="env steps in total")  # fmt: skip
         command.add_argument("--minutes", type=float, help="stop (with a checkpoint) after this wall-clock time")
         if envs is None:
             _config_option(command, "--envs", "training.policy.train:PolicyTrainConfig.num_envs", *[f"{c}.num_envs" for c in dagger], type=int,

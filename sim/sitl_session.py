@@ -216,8 +216,6 @@ def run_sitl(request: SitlRequest) -> dict:
     except OSError as err:
         raise SitlError(f"--out {request.out_dir}: cannot create {run_dir} ({err.strerror or err}): "
                         "pass a writable directory") from err  # fmt: skip
-    if not os.access(run_dir, os.W_OK | os.X_OK):
-        raise SitlError(f"--out {request.out_dir}: {run_dir} is not writable by this user: pass a writable directory")
     mavlink_port = free_port(socket.SOCK_DGRAM) if request.autopilot_url is None else request.offboard_port
     camera_port = free_port(socket.SOCK_STREAM)
     env = dict(os.environ, PYTHONUNBUFFERED="1")

@@ -145,7 +145,7 @@ def _cmd_train_cmwae(args: argparse.Namespace) -> int:
         lr_final=args.lr_final, resume=args.resume, max_wall_s=None if args.minutes is None else args.minutes * 60.0,
         init_from=args.init_from, anchor_from=args.anchor,
         **_given(args, "scheme", "modalities", "size", "batch_size", "lr", "mmd_weight", "seed", "device", "workers",
-                 "checkpoint_every", "precision", "corrupted_loss_weight", "anchor_weight"),
+                 "checkpoint_every", "precision", "corrupted_loss_weight", "anchor_weight", "val_images"),
     )  # fmt: skip
     out = train_cmwae(config)
     print(f"checkpoint in {out}")
@@ -455,6 +455,8 @@ def build_parser() -> argparse.ArgumentParser:
     start.add_argument("--anchor", metavar="CMWAE_DIR",
                        help="latent anchoring: start from this checkpoint, freeze its decoder, and pull the latent of "
                             "corrupted depth toward its latent of the clean pair (keeps the clean reconstruction)")  # fmt: skip
+    _config_option(cmwae, "--val-images", "training.cmwae.train:CmwaeTrainConfig.val_images", type=int,
+                   help="validation images scored at each checkpoint (MSE at 0 and 50 %% corruption)")
     _config_option(cmwae, "--anchor-weight", "training.cmwae.train:CmwaeTrainConfig.anchor_weight", type=float,
                    help="weight of the latent-anchoring term (with --anchor)")
     add_precision(cmwae)

@@ -119,10 +119,12 @@ def test_latent_anchoring_pulls_corrupted_latents_to_clean_ones_with_the_decoder
         base.encoder.embed["depth"][1].weight.mul_(30.0)
     save_weights(base_dir, base, "cmwae", dataclasses.asdict(config), 0, {})
     _cmnav(*TRAIN, "--data", str(dataset), "--scheme", "s2", "--out", str(out), "--steps", "40", "--lr", "1e-3",
-           "--anchor", str(base_dir), "--anchor-weight", "20", "--mmd-weight", "0.01", "--precision", "fp32")  # fmt: skip
+           "--anchor", str(base_dir), "--anchor-weight", "20", "--mmd-weight", "0.01", "--precision", "fp32",
+           "--val-images", "4")  # fmt: skip
     base, _ = load_cmwae(base_dir)
     anchored, card = load_cmwae(out)
     assert card["meta"]["train"]["anchor_from"] == str(base_dir) and card["meta"]["train"]["anchor_weight"] == 20.0
+    assert card["meta"]["train"]["val_images"] == 4 and card["meta"]["val/mse_50pct"] > 0
     # the decoder is the anchor's, bit for bit; the encoder learnt
     for key, value in base.decoder.state_dict().items():
         assert torch.equal(anchored.decoder.state_dict()[key], value), key

@@ -305,15 +305,9 @@ class Watchdog:
                 f"position/attitude {(now - v.t_telemetry_ns) / _NS_PER_MS:.0f} ms old > {cfg.telemetry_stale_ms:.0f} ms",
                 t_tel_ref + tel_limit, now,
             )  # fmt: skip
-        invalid_limit = int(cfg.depth_invalid_max_s * _NS_PER_S)
-        if self._depth_invalid.held_past(invalid_limit, now):
-            since = self._depth_invalid.since_ns
-            return await self.trip(
-                TripCause.DEPTH_INVALID,
-                f"depth invalid fraction > {cfg.depth_invalid_frac_max:.2f} for "
-                f"{(now - since) / _NS_PER_S:.1f} s > {cfg.depth_invalid_max_s:.1f} s",
-                since + invalid_limit, now,
-            )  # fmt: skip
+        if trip := await self._trip_if_held(self._depth_invalid, cfg.depth_invalid_max_s, TripCause.DEPTH_INVALID,
+                                            f"depth invalid fraction > {cfg.depth_invalid_frac_max:.2f}", "", now):  # fmt: skip
+            return trip
         if v.t_posvel_ns:
             dist_m = float(np.linalg.norm(np.asarray(v.pos_enu_m[:2]) - self._start_xy_enu_m))
             height_m = float(v.pos_enu_m[2]) - self._home_z_enu_m
@@ -365,16 +359,20 @@ class Watchdog:
             self._t_att_seen_ns = v.t_att_ns
             self._tilt_rad = tilt_rad(v.quat_enu_flu)
             self._tilt_over.update(v.t_att_ns, math.degrees(self._tilt_rad) > cfg.tilt_max_deg)
-        tilt_window_ns = int(cfg.tilt_window_s * _NS_PER_S)
-        if self._tilt_over.held_past(tilt_window_ns, now):
-            since = self._tilt_over.since_ns
-            return await self.trip(
-                TripCause.ATTITUDE,
-                f"tilt {math.degrees(self._tilt_rad):.0f} deg > {cfg.tilt_max_deg:.0f} deg for "
-                f"{(now - since) / _NS_PER_S:.2f} s > {cfg.tilt_window_s:.2f} s: flipped or tumbling",
-                since + tilt_window_ns, now,
-            )  # fmt: skip
-        return None
+        return await self._trip_if_held(self._tilt_over, cfg.tilt_window_s, TripCause.ATTITUDE,
+                                        f"tilt {math.degrees(self._tilt_rad):.0f} deg > {cfg.tilt_max_deg:.0f} deg",
+                                        ": flipped or tumbling", now)  # fmt: skip
+
+    async def _trip_if_held(self, over: OverBound, window_s: float, cause: TripCause, what: str, why: str,
+                            now: int) -> Trip | None:  # fmt: skip
+        """Trip with ``cause`` once ``over`` has held for longer than ``window_s``, the fault dated
+        to when the window ran out: "<what> for X s > <window> s<why>"."""
+        window_ns = int(window_s * _NS_PER_S)
+        if not over.held_past(window_ns, now):
+            return None
+        since = over.since_ns
+        return await self.trip(cause, f"{what} for {(now - since) / _NS_PER_S:.2f} s > {window_s:.2f} s{why}",
+                               since + window_ns, now)  # fmt: skip
 
     # ------------------------------------------------------------------ response
 

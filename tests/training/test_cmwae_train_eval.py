@@ -47,6 +47,11 @@ def test_train_checkpoint_resume_and_eval(dataset, tmp_path):
 
     _cmnav(*TRAIN, "--data", str(dataset), "--scheme", "s2", "--out", str(out), "--steps", "5", "--resume")
     assert read_card(out, "cmwae")["step"] == 5 and load_train_state(out)["step"] == 5
+    # the validation curve: a point per checkpoint (2, 3; the resumed run's 4, 5), drawn against the step
+    curve = json.loads((out / "val_curve.json").read_text())
+    assert [p["step"] for p in curve] == [2, 3, 4, 5]
+    assert all(p["ratio_50_over_0"] == pytest.approx(p["mse_50pct"] / p["mse_0pct"]) for p in curve)
+    assert (out / "val_curve.png").stat().st_size > 1000
     resumed = load_cmwae(out)[0].state_dict()
     assert any(not torch.equal(first[k], resumed[k]) for k in first)
 

@@ -23,6 +23,7 @@ from ..distributed import DistInfo, all_reduce_mean, log_weights_digest, run_dis
 from ..fastpath import PRECISIONS, FastPath, FrozenEncoder, choose_fast_path
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
+from .curve import record_val_point
 from .loss import cmwae_loss
 from .model import MODALITIES, Cmwae, CmwaeConfig, make_config
 
@@ -180,6 +181,7 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
         val["val/mse_ratio_50_over_0"] = val["val/mse_50pct"] / max(val["val/mse_0pct"], 1e-12)
         if writer is not None:
             writer.add_scalars(step, val)
+            record_val_point(out, step, val)
             save_weights(out, model, CHECKPOINT_KIND, asdict(model_config), step, {**meta, **val})
             save_train_state(out, {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
                                    "epoch": epoch, "corruption_rng": corruption_generator.get_state()})  # fmt: skip

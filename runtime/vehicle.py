@@ -27,7 +27,6 @@ from .contract.frames import ned_to_enu, quat_ned_frd_to_enu_flu
 from .service.shutdown import in_daemon_thread
 from .state import (
     MODE_HOLD,
-    MODE_OFFBOARD,
     VehicleCommandError,
     VehicleError,
     VehicleHealth,

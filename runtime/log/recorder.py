@@ -279,7 +279,7 @@ class Recorder:
             log.exception("flight log writer failed")
             self._fail(f"writing {self.path} failed: {err!r}")
         # Stay until close(): count what the loop still queued as dropped.
-        while (item := self._queue.get()) is not _STOP:
+        while self._queue.get() is not _STOP:
             self.stats.dropped += 1
 
     def _write_until_stopped(self) -> bool:

@@ -16,7 +16,7 @@ from runtime.config import ConfigError, ProcessConfig, TensorRtConfig, variant_p
 from runtime.config_loader import load_config
 from runtime.contract import contract_metadata
 from runtime.programs.fly import FlyError, load_model
-from runtime.model import KEY_VARIANT, ModelLoadError, PolicyModel, session_providers
+from runtime.model import KEY_VARIANT, ModelLoadError, session_providers
 from tests.runtime.onnx_models import save, step_model
 
 ROOT = Path(__file__).resolve().parents[2]

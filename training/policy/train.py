@@ -175,7 +175,7 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
             scalars |= {f"episodes/{k}": v for k, v in episode_stats.items()}
             scalars |= {"curriculum/level": env.curriculum.level, "curriculum/changes": env.curriculum.changes,
                         "perf/env_steps_per_s": steps_per_iteration / elapsed,
-                        "perf/collect_share": t_collect / elapsed, "train/action_std": float(model.log_std.exp().mean())}  # fmt: skip
+                        "perf/collect_share": t_collect / elapsed, "train/action_std": float(model.log_std.detach().exp().mean())}  # fmt: skip
             scalars |= {f"perf/{k}_s": v for k, v in env.stage_seconds.items()}
             writer.add_scalars(env_steps, scalars)
         if progress is not None:

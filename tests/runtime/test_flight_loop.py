@@ -1,6 +1,7 @@
 """The flight loop against an in-process kinematic vehicle and camera (no MAVLink, no SITL)."""
 
 import asyncio
+import gc
 import time
 
 import numpy as np
@@ -127,8 +128,10 @@ def goal_seeker(tmp_path_factory):
 def test_reaches_goal_then_hover_and_hold(goal_seeker, tmp_path):
     goal = START + np.array([1.2, 1.2, 0.3])  # ahead-left and above: it has to turn left and climb
     recorder = Recorder(tmp_path / "f.mcap", RecorderConfig(flush_period_s=0.2))
+    gc.unfreeze()
     result, vehicle = asyncio.run(_fly(goal_seeker, goal, 20.0, recorder=recorder))
     recorder.close()
+    assert gc.get_freeze_count() > 0  # what existed before the episode was kept out of the collector's reach
     assert result.outcome == "success", result
     assert result.final_distance_m < 1.0 and result.watchdog_trips == []
     assert result.steps > 5 and result.step_ms["p50"] is not None

@@ -14,11 +14,12 @@
 # action differences of that variant on the first one's recorded frames and telemetry.
 #   VARIANTS="fp32 int8" REPLAY_VARIANT=int8 bash scripts/sitl-campaign.sh MODEL.onnx "0 3" 20
 # CMNAV / PYTHON pick the programs (default .venv/bin/cmnav, .venv/bin/python); TIMEOUT_S the
-# offboard time limit per flight.
+# offboard time limit per flight; SEED_START the first seed (default 0).
 set -euo pipefail
 MODEL=$1
 LEVELS=${2:-"0"}
 SEEDS=${3:-20}
+SEED_START=${SEED_START:-0}  # first seed: SEED_START=10 with 10 seeds flies seeds 10-19 (to extend a campaign)
 OUT=${4:-runs/sitl-campaign/$(basename "$MODEL" .onnx)}
 CMNAV=${CMNAV:-.venv/bin/cmnav}
 PYTHON=${PYTHON:-.venv/bin/python}
@@ -34,7 +35,7 @@ fly() {  # fly model $1 on every level and seed into $2
   mkdir -p "$2"
   : > "$2/summaries.jsonl"
   for level in $LEVELS; do
-    for seed in $(seq 0 $((SEEDS - 1))); do
+    for seed in $(seq "$SEED_START" $((SEED_START + SEEDS - 1))); do
       "$CMNAV" sitl --model "$1" --level "$level" --seed "$seed" --timeout "$TIMEOUT_S" --out "$2/runs" --json 2>>"$2/sitl.log" \
         | tail -n 1 >> "$2/summaries.jsonl" || true
     done

@@ -83,7 +83,7 @@ class TrackingMonitor:
         self._ref_enu_m_s = np.zeros(3)
         self._cmd_vehicle_m_s = np.zeros(3)
         self._yaw_enu_rad = 0.0
-        self._over = OverBound()
+        self.over = OverBound()  # since when the error has been over the bound
 
     def start(self, t_ns: int, vel_enu_m_s: np.ndarray, yaw_enu_rad: float) -> None:
         """Supervision starts at ``t_ns``: the reference is the measured velocity, the command zero
@@ -93,7 +93,7 @@ class TrackingMonitor:
         self._ref_enu_m_s = vel.copy() if np.all(np.isfinite(vel)) else np.zeros(3)
         self._cmd_vehicle_m_s = np.zeros(3)
         self._yaw_enu_rad = float(yaw_enu_rad)
-        self._over.reset()
+        self.over.reset()
         self._recent.clear()
         self.sustained_peak_m_s = 0.0
 
@@ -109,9 +109,9 @@ class TrackingMonitor:
         error_enu = self._ref_enu_m_s - np.asarray(vel_enu_m_s, dtype=np.float64)
         error_v = world_enu_to_vehicle(error_enu, self._yaw_enu_rad)
         norm = float(np.linalg.norm(error_v))
-        self._over.update(t_ns, math.isfinite(norm) and norm > self.error_max_m_s)
+        self.over.update(t_ns, math.isfinite(norm) and norm > self.error_max_m_s)
         self._note_sustained(t_ns, norm if math.isfinite(norm) else 0.0)
-        return TrackingStatus(t_ns, error_v, self._over.since_ns)
+        return TrackingStatus(t_ns, error_v, self.over.since_ns)
 
     def _note_sustained(self, t_ns: int, error_m_s: float) -> None:
         """Track ``sustained_peak_m_s``: the largest error that held for a whole window (the

@@ -306,7 +306,7 @@ class Watchdog:
                 t_tel_ref + tel_limit, now,
             )  # fmt: skip
         if trip := await self._trip_if_held(self._depth_invalid, cfg.depth_invalid_max_s, TripCause.DEPTH_INVALID,
-                                            f"depth invalid fraction > {cfg.depth_invalid_frac_max:.2f}", "", now):  # fmt: skip
+                                            lambda: f"depth invalid fraction > {cfg.depth_invalid_frac_max:.2f}", "", now):  # fmt: skip
             return trip
         if v.t_posvel_ns:
             dist_m = float(np.linalg.norm(np.asarray(v.pos_enu_m[:2]) - self._start_xy_enu_m))
@@ -344,34 +344,34 @@ class Watchdog:
         if v.t_posvel_ns > self._t_posvel_seen_ns:
             self._t_posvel_seen_ns = v.t_posvel_ns
             self._tracking_status = self._tracking.update(v.t_posvel_ns, v.vel_enu_m_s, v.yaw_enu_rad)
-        status = self._tracking_status
-        window_ns = int(cfg.tracking_window_s * _NS_PER_S)
-        if status is not None and status.over_since_ns is not None and now - status.over_since_ns > window_ns:
+
+        def tracking_error() -> str:
+            status = self._tracking_status
             fwd, left, up = (round(float(e), 2) for e in status.error_vehicle_m_s)
-            return await self.trip(
-                TripCause.TRACKING,
-                f"velocity error {status.error_m_s:.2f} m/s (vehicle frame forward/left/up {fwd}/{left}/{up}) "
-                f"> {cfg.tracking_error_max_m_s:.2f} m/s for {(now - status.over_since_ns) / _NS_PER_S:.2f} s "
-                f"> {cfg.tracking_window_s:.2f} s: the vehicle does not follow its commands",
-                status.over_since_ns + window_ns, now,
-            )  # fmt: skip
+            return (f"velocity error {status.error_m_s:.2f} m/s (vehicle frame forward/left/up {fwd}/{left}/{up}) "
+                    f"> {cfg.tracking_error_max_m_s:.2f} m/s")  # fmt: skip
+
+        if trip := await self._trip_if_held(self._tracking.over, cfg.tracking_window_s, TripCause.TRACKING, tracking_error,
+                                            ": the vehicle does not follow its commands", now):  # fmt: skip
+            return trip
         if v.t_att_ns > self._t_att_seen_ns:
             self._t_att_seen_ns = v.t_att_ns
             self._tilt_rad = tilt_rad(v.quat_enu_flu)
             self._tilt_over.update(v.t_att_ns, math.degrees(self._tilt_rad) > cfg.tilt_max_deg)
         return await self._trip_if_held(self._tilt_over, cfg.tilt_window_s, TripCause.ATTITUDE,
-                                        f"tilt {math.degrees(self._tilt_rad):.0f} deg > {cfg.tilt_max_deg:.0f} deg",
+                                        lambda: f"tilt {math.degrees(self._tilt_rad):.0f} deg > {cfg.tilt_max_deg:.0f} deg",
                                         ": flipped or tumbling", now)  # fmt: skip
 
-    async def _trip_if_held(self, over: OverBound, window_s: float, cause: TripCause, what: str, why: str,
-                            now: int) -> Trip | None:  # fmt: skip
+    async def _trip_if_held(self, over: OverBound, window_s: float, cause: TripCause, what: Callable[[], str],
+                            why: str, now: int) -> Trip | None:  # fmt: skip
         """Trip with ``cause`` once ``over`` has held for longer than ``window_s``, the fault dated
-        to when the window ran out: "<what> for X s > <window> s<why>"."""
+        to when the window ran out: "<what()> for X s > <window> s<why>" (``what`` is only formatted
+        for a trip, not on every check)."""
         window_ns = int(window_s * _NS_PER_S)
         if not over.held_past(window_ns, now):
             return None
         since = over.since_ns
-        return await self.trip(cause, f"{what} for {(now - since) / _NS_PER_S:.2f} s > {window_s:.2f} s{why}",
+        return await self.trip(cause, f"{what()} for {(now - since) / _NS_PER_S:.2f} s > {window_s:.2f} s{why}",
                                since + window_ns, now)  # fmt: skip
 
     # ------------------------------------------------------------------ response

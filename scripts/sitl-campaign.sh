@@ -14,7 +14,8 @@
 # action differences of that variant on the first one's recorded frames and telemetry.
 #   VARIANTS="fp32 int8" REPLAY_VARIANT=int8 bash scripts/sitl-campaign.sh MODEL.onnx "0 3" 20
 # CMNAV / PYTHON pick the programs (default .venv/bin/cmnav, .venv/bin/python); TIMEOUT_S the
-# offboard time limit per flight; SEED_START the first seed (default 0).
+# offboard time limit per flight; SEED_START the first seed (default 0); DEGRADE the SITL camera's
+# depth degradation (`cmnav sitl --degrade`: none or projector-off, default none).
 set -euo pipefail
 MODEL=$1
 LEVELS=${2:-"0"}
@@ -26,6 +27,7 @@ PYTHON=${PYTHON:-.venv/bin/python}
 TIMEOUT_S=${TIMEOUT_S:-20}  # offboard time limit per flight (training episodes last 10 s)
 VARIANTS=${VARIANTS:-}
 REPLAY_VARIANT=${REPLAY_VARIANT:-}
+DEGRADE=${DEGRADE:-none}
 
 variant_file() {  # the file of variant $2 of model $1 (runtime.config.variant_path)
   "$PYTHON" -c 'import sys; from runtime.config import variant_path; print(variant_path(sys.argv[1], sys.argv[2]))' "$1" "$2"
@@ -36,7 +38,7 @@ fly() {  # fly model $1 on every level and seed into $2
   : > "$2/summaries.jsonl"
   for level in $LEVELS; do
     for seed in $(seq "$SEED_START" $((SEED_START + SEEDS - 1))); do
-      "$CMNAV" sitl --model "$1" --level "$level" --seed "$seed" --timeout "$TIMEOUT_S" --out "$2/runs" --json 2>>"$2/sitl.log" \
+      "$CMNAV" sitl --model "$1" --level "$level" --seed "$seed" --timeout "$TIMEOUT_S" --degrade "$DEGRADE" --out "$2/runs" --json 2>>"$2/sitl.log" \
         | tail -n 1 >> "$2/summaries.jsonl" || true
     done
   done

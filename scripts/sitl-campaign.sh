@@ -48,13 +48,16 @@ if [ -z "$VARIANTS" ]; then
   fly "$MODEL" "$OUT"
   "$PYTHON" - "$OUT/summaries.jsonl" <<'PY'
 import collections, json, statistics, sys
+
+from training.stats import wilson_interval
+
 rows = [json.loads(line) for line in open(sys.argv[1]) if line.strip().startswith("{")]
 by_level = collections.defaultdict(list)
 all_trips = collections.Counter()
 for r in rows:
     by_level[r["level"]].append(r)
-print("| level | flights | success % | crash % | timeout % | other | time_s (success, median) | step p99 ms (median) | watchdog trips | trips without a crash | crashes caught <= 1.5 s | crash_detect_ms (median) | tracking error sustained, m/s (max, no crash) |")
-print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+print("| level | flights | success % | 95 % interval | crash % | timeout % | other | time_s (success, median) | step p99 ms (median) | watchdog trips | trips without a crash | crashes caught <= 1.5 s | crash_detect_ms (median) | tracking error sustained, m/s (max, no crash) |")
+print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
 for level, rs in sorted(by_level.items()):
     n = len(rs)
     count = collections.Counter(r["outcome"] for r in rs)
@@ -69,7 +72,8 @@ for level, rs in sorted(by_level.items()):
     # The largest velocity-tracking error a flight held for a whole tracking window: the margin to
     # the watchdog's bound (tracking_error_max_m_s) in flights that did not crash.
     peaks = [r["tracking_error_peak_m_s"] for r in rs if r["outcome"] != "crash" and r.get("tracking_error_peak_m_s") is not None]
-    print(f"| {level} | {n} | {100 * count['success'] / n:.0f} | {100 * count['crash'] / n:.0f} | {100 * count['timeout'] / n:.0f} | "
+    low, high = wilson_interval(count["success"], n)
+    print(f"| {level} | {n} | {100 * count['success'] / n:.0f} | {100 * low:.0f}–{100 * high:.0f} | {100 * count['crash'] / n:.0f} | {100 * count['timeout'] / n:.0f} | "
           f"{other} | {statistics.median(times) if times else float('nan'):.1f} | {statistics.median(p99) if p99 else float('nan'):.1f} | {trips} | "
           f"{len(false_trips)} | {caught}/{count['crash']} | {statistics.median(detect) if detect else float('nan'):.0f} | "
           f"{max(peaks) if peaks else float('nan'):.2f} |")
@@ -94,19 +98,12 @@ if [ -n "$REPLAY_VARIANT" ]; then
   done
 fi
 "$PYTHON" - "$OUT" $VARIANTS <<'PY'
-import collections, json, math, sys
+import collections, json, sys
 from pathlib import Path
 
+from training.stats import wilson_interval
+
 out, variants = Path(sys.argv[1]), sys.argv[2:]
-
-
-def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """Wilson score 95 % interval of a success rate k/n."""
-    if n == 0:
-        return float("nan"), float("nan")
-    p, d = k / n, 1 + z * z / n
-    centre, half = (p + z * z / (2 * n)) / d, z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
-    return centre - half, centre + half
 
 
 rates = {}
@@ -118,7 +115,7 @@ for v in variants:
     for level, rs in by_level.items():
         k = sum(r["outcome"] == "success" for r in rs)
         p99 = sorted(r["step_ms"]["p99"] for r in rs if r.get("step_ms") and r["step_ms"].get("p99") is not None)
-        rates[level, v] = (k, len(rs), wilson(k, len(rs)), p99[len(p99) // 2] if p99 else float("nan"))
+        rates[level, v] = (k, len(rs), wilson_interval(k, len(rs)), p99[len(p99) // 2] if p99 else float("nan"))
 base = variants[0]
 print(f"| level | variant | flights | success % | 95 % interval | within {base}'s interval | step p99 ms (median) |")
 print("|---|---|---|---|---|---|---|")

@@ -117,7 +117,9 @@ def test_train_policy_moves_the_curriculum_checkpoints_resumes_and_evaluates(enc
     for cell in cells.values():
         assert cell["episodes"] == 2
         assert cell["success_pct"] + cell["timeout_pct"] + cell["crash_pct"] == pytest.approx(100.0)
-    assert "| condition | level | episodes | success % | timeout % | crash % |" in stdout
+        low, high = cell["success_ci95_pct"]
+        assert 0.0 <= low <= cell["success_pct"] <= high <= 100.0 and high - low > 30.0  # two episodes say little
+    assert "| condition | level | episodes | success % | 95 % interval | timeout % | crash % |" in stdout
     assert len(list((tmp_path / "eval").glob("clean_level00_ep*.png"))) == 2
     assert (tmp_path / "eval" / "table2.md").read_text().count("\n") == 8
 

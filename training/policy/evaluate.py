@@ -23,6 +23,7 @@ from sim.plot import plot_top_view
 from ..cmwae.train import load_cmwae
 from ..fastpath import FrozenEncoder, check_action_parity
 from ..progress import Progress
+from ..stats import wilson_interval
 from .env import CRASH, OUTCOMES, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder, parity_frames
 from .network import TEACHER, check_trained_on, load_policy
 
@@ -136,10 +137,11 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
                                   title=f"{condition}, level {level}, episode {k}: {OUTCOMES[code]}")  # fmt: skip
                 progress.update(1)
             total = sum(counts.values())
+            low, high = wilson_interval(counts[SUCCESS], total)
             cells.append({
                 "condition": condition, "level": level, "episodes": total,
                 "success_pct": 100.0 * counts[SUCCESS] / total, "timeout_pct": 100.0 * counts[TIMEOUT] / total,
-                "crash_pct": 100.0 * counts[CRASH] / total,
+                "crash_pct": 100.0 * counts[CRASH] / total, "success_ci95_pct": [100.0 * low, 100.0 * high],
             })  # fmt: skip
     progress.close()
     result = {
@@ -155,10 +157,12 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
 
 
 def format_table2(result: dict) -> str:
-    """The paper's layout: condition, level, success / timeout / crash %."""
-    lines = ["| condition | level | episodes | success % | timeout % | crash % |", "|---|---|---|---|---|---|"]
+    """The paper's layout: condition, level, success / timeout / crash %, and the success rate's
+    Wilson 95 % interval."""
+    lines = ["| condition | level | episodes | success % | 95 % interval | timeout % | crash % |", "|---|---|---|---|---|---|---|"]
     for c in result["cells"]:
-        lines.append(f"| {c['condition']} | {c['level']} | {c['episodes']} | {c['success_pct']:.1f} | "
+        low, high = c["success_ci95_pct"]
+        lines.append(f"| {c['condition']} | {c['level']} | {c['episodes']} | {c['success_pct']:.1f} | {low:.0f}–{high:.0f} | "
                      f"{c['timeout_pct']:.1f} | {c['crash_pct']:.1f} |")  # fmt: skip
     return "\n".join(lines)
 

@@ -8,6 +8,7 @@ import json
 import subprocess
 import sys
 from dataclasses import asdict
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,6 +26,7 @@ from training.policy.env import CurriculumConfig, NavEnv, NavEnvConfig
 from training.policy.network import ActorCritic, PolicyConfig
 
 pytestmark = pytest.mark.timeout(300)
+GAP_SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "student-gap.py"
 TEACHER = ["train", "teacher", "--size", "tiny", "--envs", "16", "--rollout", "8", "--minibatches", "2",
            "--checkpoint-every", "2", "--curriculum-window", "4", "--max-level", "3"]  # fmt: skip
 
@@ -168,6 +170,21 @@ def test_the_distilled_student_exports_and_the_runtime_loads_it(trained, tmp_pat
     reference = torch_outputs(nets.step, inputs)
     step = model.step(inputs.gray[0, 0], inputs.depth[0, 0], inputs.state[0], inputs.hidden[0])
     np.testing.assert_allclose(step.action, reference[c.ONNX_OUTPUT_ACTION][0], atol=PARITY_TOLERANCE)
+
+    # scripts/student-gap.py: the student flies, the teacher labels its states, the decoder reconstructs
+    proc = subprocess.run([sys.executable, str(GAP_SCRIPT), "--student", str(out), "--encoder", str(trained / "enc"),
+                           "--teacher", str(trained / "teacher"), "--levels", "3", "--episodes", "3"],
+                          capture_output=True, text=True, timeout=280)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    gap = json.loads(proc.stdout.strip().splitlines()[-1])["3"]
+    assert gap["episodes"] == 3 and gap["crashes"] + gap["successes"] <= 3
+    phases = [p for p in ("successful episodes", "last 1 s before a crash") if p in gap]
+    assert len(phases) == bool(gap["successes"]) + bool(gap["crashes"])
+    for phase in phases:
+        m = gap[phase]
+        assert m["steps"] >= 1 and 0.0 <= m["near_share"] <= 1.0
+        assert all(np.isfinite(m[k]) and m[k] >= 0.0 for k in ("action_mse", "recon_mse", "recon_mse_near"))
+        assert m["action_mse"] <= 4.0  # both actions lie in [-1, 1]
 
 
 def test_a_policy_is_not_taken_for_a_teacher(tmp_path):

@@ -17,15 +17,18 @@ from __future__ import annotations
 
 import argparse
 import json
-from collections import defaultdict
 
 import torch
 from torch import nn
 
 from runtime.contract.constants import CONTROL_PERIOD_S, DEPTH_MAX_M, STATE_DIM
 from training.cmwae.train import load_cmwae
-from training.policy.env import CRASH, SUCCESS, CurriculumConfig, NavEnv, NavEnvConfig
+from training.policy.env import CRASH, SUCCESS
+from training.policy.evaluate import table2_env
 from training.policy.network import load_policy
+
+METRICS = ("action_mse", "recon_mse", "recon_mse_near", "near_share")
+PHASES = {SUCCESS: "successful episodes", CRASH: "last 1 s before a crash"}
 
 
 class Tap(nn.Module):
@@ -52,49 +55,39 @@ def measure(args: argparse.Namespace) -> dict:
     result = {}
     for level in args.levels:
         n = args.episodes
-        config = NavEnvConfig(num_envs=n, corruption="none", kick_probability=0.0,
-                              curriculum=CurriculumConfig(start_level=level, min_level=level, max_level=level))  # fmt: skip
-        # The seeds of `cmnav eval policy`'s first batch at this level (training.policy.evaluate).
-        env = NavEnv(config, tap, "cpu", seed=args.seed * 100_003 + level * 1009, fixed_level=level, auto_reset=False,
-                     teacher_obs=True)  # fmt: skip
+        env = table2_env(tap, level, "clean", n, "cpu", args.seed, teacher_obs=True)  # `cmnav eval policy`'s rooms
         obs, teacher_obs = env.reset(), env.teacher_observation()
         h_student, h_teacher = student.initial_hidden(n, "cpu"), teacher.initial_hidden(n, "cpu")
-        per_step = []  # (active [n], action error [n], recon mse [n], near mse [n], near share [n])
+        active, metrics = [], []  # per step: [n] bool, [n, len(METRICS)]
         outcome = torch.zeros(n, dtype=torch.long)
         while bool(env.active.any()):
-            active = env.active.clone()
-            recon = cmwae.decoder(obs[:, STATE_DIM:])
-            target = tap.depth
-            close = target < near
-            squared = (recon - target) ** 2
-            near_count = close.sum(dim=(1, 2, 3)).clamp(min=1)
+            squared = (cmwae.decoder(obs[:, STATE_DIM:]) - tap.depth) ** 2
+            close = tap.depth < near
             action, _, h_student = student.step(obs, h_student)
             label, _, h_teacher = teacher.step(teacher_obs, h_teacher)
-            error = ((action.clamp(-1, 1) - label.clamp(-1, 1)) ** 2).mean(-1)
-            per_step.append((active, error, squared.mean(dim=(1, 2, 3)), (squared * close).sum(dim=(1, 2, 3)) / near_count,
-                             close.float().mean(dim=(1, 2, 3))))  # fmt: skip
+            active.append(env.active.clone())
+            metrics.append(torch.stack([
+                ((action.clamp(-1, 1) - label.clamp(-1, 1)) ** 2).mean(-1),
+                squared.mean(dim=(1, 2, 3)),
+                (squared * close).sum(dim=(1, 2, 3)) / close.sum(dim=(1, 2, 3)).clamp(min=1),
+                close.float().mean(dim=(1, 2, 3)),
+            ], dim=-1))  # fmt: skip
             step = env.step(action)
             outcome[step.done] = step.outcome[step.done]
             obs, teacher_obs = step.obs, step.teacher_obs
-        sums = defaultdict(lambda: torch.zeros(4))
-        counts = defaultdict(int)
+        active_tn, metrics_tnm = torch.stack(active), torch.stack(metrics)
+        chosen = {PHASES[SUCCESS]: [], PHASES[CRASH]: []}
         for i in range(n):
-            steps = [t for t, s in enumerate(per_step) if s[0][i]]
-            if int(outcome[i]) == CRASH:
-                phase, chosen = "last 1 s before a crash", steps[-window:]
-            elif int(outcome[i]) == SUCCESS:
-                phase, chosen = "successful episodes", steps
-            else:
-                continue
-            for t in chosen:
-                sums[phase] += torch.stack([per_step[t][k][i] for k in range(1, 5)])
-                counts[phase] += 1
-        result[level] = {
-            "episodes": n, "crashes": int((outcome == CRASH).sum()), "successes": int((outcome == SUCCESS).sum()),
-            **{phase: {"steps": counts[phase], **dict(zip(("action_mse", "recon_mse", "recon_mse_near", "near_share"),
-                                                          (sums[phase] / counts[phase]).tolist()))}
-               for phase in counts},
-        }  # fmt: skip
+            steps = metrics_tnm[active_tn[:, i], i]  # [steps of episode i, len(METRICS)]
+            if int(outcome[i]) == SUCCESS:
+                chosen[PHASES[SUCCESS]].append(steps)
+            elif int(outcome[i]) == CRASH:
+                chosen[PHASES[CRASH]].append(steps[-window:])
+        result[level] = {"episodes": n, "crashes": int((outcome == CRASH).sum()), "successes": int((outcome == SUCCESS).sum())}
+        for phase, parts in chosen.items():
+            if parts:
+                rows = torch.cat(parts)
+                result[level][phase] = {"steps": len(rows), **dict(zip(METRICS, rows.mean(dim=0).tolist()))}
     return result
 
 
@@ -112,7 +105,7 @@ def main() -> None:
     print("| level | phase | steps | action MSE vs teacher | recon MSE x1e-3 | recon MSE near x1e-3 | near pixels % |")
     print("|---|---|---|---|---|---|---|")
     for level, r in result.items():
-        for phase in ("successful episodes", "last 1 s before a crash"):
+        for phase in PHASES.values():
             if phase in r:
                 p = r[phase]
                 print(f"| {level} | {phase} | {p['steps']} | {p['action_mse']:.4f} | {1e3 * p['recon_mse']:.2f} | "

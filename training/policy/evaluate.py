@@ -55,6 +55,17 @@ class PolicyEvalConfig:
             raise ValueError(f"levels={self.levels} must be non-negative obstacle counts")
 
 
+def table2_env(encoder, level: int, condition: str, num_envs: int, device, seed: int, first_episode: int = 0,
+               teacher_obs: bool = False) -> NavEnv:  # fmt: skip
+    """The env of Table II's episodes ``first_episode`` .. ``first_episode + num_envs - 1`` at
+    ``level`` under ``condition``: no kicks, no reset after an episode ends.  Its rooms depend on
+    (seed, level, episode number), not on the condition or policy."""
+    config = NavEnvConfig(num_envs=num_envs, corruption=CONDITIONS[condition], kick_probability=0.0,
+                          curriculum=CurriculumConfig(start_level=level, min_level=level, max_level=level))  # fmt: skip
+    return NavEnv(config, encoder, device, seed=seed * 100_003 + level * 1009 + first_episode, fixed_level=level,
+                  auto_reset=False, teacher_obs=teacher_obs)  # fmt: skip
+
+
 @torch.no_grad()
 def fly_episodes(policy, encoder, level: int, condition: str, episodes: int, batch_envs: int, device, seed: int):
     """Fly ``episodes`` episodes at ``level`` under ``condition``; yields per episode
@@ -62,10 +73,7 @@ def fly_episodes(policy, encoder, level: int, condition: str, episodes: int, bat
     done_count = 0
     while done_count < episodes:
         n = min(batch_envs, episodes - done_count)
-        config = NavEnvConfig(num_envs=n, corruption=CONDITIONS[condition], kick_probability=0.0,
-                              curriculum=CurriculumConfig(start_level=level, min_level=level, max_level=level))  # fmt: skip
-        # Episode seeds depend on (seed, level, episode number), not on the condition or policy.
-        env = NavEnv(config, encoder, device, seed=seed * 100_003 + level * 1009 + done_count, fixed_level=level, auto_reset=False)
+        env = table2_env(encoder, level, condition, n, device, seed, first_episode=done_count)
         obs = env.reset()
         worlds = [env.world.describe(i) for i in range(n)]
         hidden = policy.initial_hidden(n, device)

@@ -67,12 +67,36 @@ def _cmd_export_policy(args: argparse.Namespace) -> int:
 
 
 def _cmd_dataset(args: argparse.Namespace) -> int:
+    if (args.policy is None) != (args.encoder is None):
+        print("cmnav dataset: --policy and --encoder go together (the policy flies on the encoder it was trained with)",
+              file=sys.stderr)  # fmt: skip
+        return 2
+    if args.policy is not None:
+        return _flight_frames(args)
+    if args.every_steps is not None or args.envs is not None:
+        print("cmnav dataset: --every-steps and --envs apply to flights (--policy)", file=sys.stderr)
+        return 2
     from training.data.generate import DatasetSpec, generate_dataset
 
     levels = {} if args.levels is None else {"levels": tuple(args.levels)}
     spec = DatasetSpec(count=args.count, seed=args.seed, **levels, **_given(args, "frames_per_room"))
     manifest = generate_dataset(args.out, spec)
     print(f"wrote {manifest['frames']} gray/depth pairs from {manifest['rooms']} rooms to {args.out} (TartanAir V1 layout)")
+    return 0
+
+
+def _flight_frames(args: argparse.Namespace) -> int:
+    from training.policy.flight_frames import FlightFramesSpec, record_flight_frames
+
+    if args.frames_per_room is not None:
+        print("cmnav dataset: --frames-per-room is for random poses; a flight keeps frames by --every-steps", file=sys.stderr)
+        return 2
+    levels = {} if args.levels is None else {"min_level": min(args.levels), "max_level": max(args.levels)}
+    spec = FlightFramesSpec(policy_dir=args.policy, encoder_dir=args.encoder, count=args.count, seed=args.seed, **levels,
+                            **_given(args, "every_steps", num_envs="envs"))  # fmt: skip
+    manifest = record_flight_frames(args.out, spec)
+    print(f"wrote {manifest['frames']} gray/depth pairs from {manifest['flights_with_frames']} flights of {args.policy} "
+          f"to {args.out} (TartanAir V1 layout); finished flights: {manifest['flight_outcomes']}")  # fmt: skip
     return 0
 
 
@@ -141,11 +165,11 @@ def _cmd_train_cmwae(args: argparse.Namespace) -> int:
     from training.cmwae.train import CmwaeTrainConfig, train_cmwae
 
     config = CmwaeTrainConfig(
-        data_dir=args.data, out_dir=args.out, steps=args.steps, epochs=args.epochs if args.steps is None else None,
+        data_dir=args.data[0], extra_data_dirs=tuple(args.data[1:]), out_dir=args.out, steps=args.steps, epochs=args.epochs if args.steps is None else None,
         lr_final=args.lr_final, resume=args.resume, max_wall_s=None if args.minutes is None else args.minutes * 60.0,
         init_from=args.init_from, anchor_from=args.anchor,
         **_given(args, "scheme", "modalities", "size", "batch_size", "lr", "mmd_weight", "seed", "device", "workers",
-                 "checkpoint_every", "precision", "corrupted_loss_weight", "anchor_weight", "val_images"),
+                 "checkpoint_every", "precision", "corrupted_loss_weight", "anchor_weight", "consistency_weight", "val_images"),
     )  # fmt: skip
     out = train_cmwae(config)
     print(f"checkpoint in {out}")
@@ -182,15 +206,12 @@ def _train_student(args: argparse.Namespace) -> int:
     from training.policy.dagger import DaggerConfig, train_dagger
     from training.policy.network import POLICY_SIZES
 
-    if args.init_from is not None:
-        print("cmnav train policy: --init-from is for PPO fine-tuning, not with --teacher", file=sys.stderr)
-        return 2
     config = DaggerConfig(
         teacher_dir=args.teacher, encoder_dir=args.encoder, out_dir=args.out,
-        policy=POLICY_SIZES[args.size], resume=args.resume,
+        policy=POLICY_SIZES[args.size], resume=args.resume, init_from=args.init_from,
         max_wall_s=None if args.minutes is None else args.minutes * 60.0,
         **_given(args, "device", "seed", "corruption", "minibatches", "max_level", "checkpoint_every", "precision", "lr",
-                 "beta_decay_env_steps", "projector_off_episode_fraction", num_envs="envs", rollout_steps="rollout",
+                 "beta_start", "beta_decay_env_steps", "projector_off_episode_fraction", num_envs="envs", rollout_steps="rollout",
                  env_steps="steps"),
     )  # fmt: skip
     out = train_dagger(config)
@@ -213,7 +234,7 @@ def _cmd_eval_cmwae(args: argparse.Namespace) -> int:
 
     result = evaluate_cmwae(
         CmwaeEvalConfig(checkpoint=args.checkpoint, data_dir=args.data, out_dir=args.out, max_images=args.max_images,
-                        **_given(args, "split", "device", "seed", "precision"),
+                        **_given(args, "split", "device", "seed", "precision", "near_m"),
                         **({} if args.patch_sides is None else {"patch_sides_px": args.patch_sides}))  # fmt: skip
     )
     print(result["table"])
@@ -403,14 +424,25 @@ def build_parser() -> argparse.ArgumentParser:
         "dataset",
         help="render gray/depth pairs from the simulated world (TartanAir V1 layout)",
         description="Render gray/depth pairs from random collision-free poses in random rooms across "
-        "curriculum levels; one room is one trajectory (ENV/Easy/P000), so splits are by room.",
+        "curriculum levels; one room is one trajectory (ENV/Easy/P000), so splits are by room.  With --policy and "
+        "--encoder, record them along that policy's own flights instead (levels drawn uniformly between the smallest "
+        "and the largest --levels, kicks, the training corruption on what it sees; clean frames kept): one frame in "
+        "--every-steps of each flight and every frame of the last second before each crash, the close-up views a "
+        "crashing policy meets; one flight is one trajectory.",
     )
     dataset.add_argument("--out", required=True, help="output directory")
     dataset.add_argument("--count", type=int, required=True, help="number of pairs")
     dataset.add_argument("--seed", type=int, default=0, help="seed of rooms, poses and camera jitter")
     _config_option(dataset, "--levels", "training.data.generate:DatasetSpec.levels", type=int, nargs="+",
-                   help="curriculum levels (obstacle counts), cycled over rooms")  # fmt: skip
+                   help="curriculum levels (obstacle counts), cycled over rooms (with --policy: drawn uniformly between the "
+                   "smallest and the largest)")  # fmt: skip
     _config_option(dataset, "--frames-per-room", "training.data.generate:DatasetSpec.frames_per_room", type=int, help="views per room")
+    dataset.add_argument("--policy", metavar="POLICY_DIR", help="record along this policy's flights (needs --encoder)")
+    dataset.add_argument("--encoder", metavar="CMWAE_DIR", help="the encoder the --policy was trained with")
+    _config_option(dataset, "--every-steps", "training.policy.flight_frames:FlightFramesSpec.every_steps", type=int,
+                   help="with --policy: keep one frame in this many along each flight")  # fmt: skip
+    _config_option(dataset, "--envs", "training.policy.flight_frames:FlightFramesSpec.num_envs", type=int,
+                   help="with --policy: flights flown at once")  # fmt: skip
     dataset.set_defaults(func=_cmd_dataset)
 
     def add_precision(command: argparse.ArgumentParser) -> None:
@@ -426,7 +458,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Train the CMWAE on gray/depth pairs (TartanAir V1/V2 layout, e.g. from `cmnav dataset`). "
         "Multi-GPU: `torchrun --nproc_per_node=N -m cmnav train cmwae ... --device cuda`.",
     )
-    cmwae.add_argument("--data", required=True, help="dataset directory")
+    cmwae.add_argument("--data", required=True, nargs="+", metavar="DIR",
+                       help="dataset directories; the train splits of all are trained on, the validation curve stays on "
+                       "the first one's val split (e.g. --data runs/data/sim12k runs/data/flights)")  # fmt: skip
     _config_option(cmwae, "--scheme", "training.cmwae.train:CmwaeTrainConfig.scheme", choices=["s1", "s2", "none"],
                    help="training corruption (none: the clean-depth baseline)")
     cmwae.add_argument("--out", required=True, help="checkpoint directory (model.json + fp16 shards + train state)")
@@ -459,6 +493,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="validation images scored at each checkpoint (MSE at 0 and 50 %% corruption)")
     _config_option(cmwae, "--anchor-weight", "training.cmwae.train:CmwaeTrainConfig.anchor_weight", type=float,
                    help="weight of the latent-anchoring term (with --anchor)")
+    _config_option(cmwae, "--consistency-weight", "training.cmwae.train:CmwaeTrainConfig.consistency_weight", type=float,
+                   help="fine-tuning encoder and decoder (--init-from, no --anchor): weight of the pull of each corrupted "
+                   "image's latent toward this encoder's own latent of the same pair with clean depth")  # fmt: skip
     add_precision(cmwae)
     cmwae.set_defaults(func=_cmd_train_cmwae)
 
@@ -509,14 +546,18 @@ def build_parser() -> argparse.ArgumentParser:
                    "training.policy.dagger:DaggerConfig.corruption", choices=["train", "none"],
                    help="depth corruption during training (none: the depth-only baseline policy)")  # fmt: skip
     policy.add_argument("--init-from", metavar="POLICY_DIR",
-                        help="start from this policy checkpoint (fine-tuning); when it was trained on another encoder, "
-                        "its latent normalisation is re-estimated on --encoder")  # fmt: skip
+                        help="start from this policy checkpoint (PPO fine-tuning, or with --teacher a student distilled "
+                        "before); when it was trained on another encoder, its latent normalisation is re-estimated on "
+                        "--encoder")  # fmt: skip
     policy.add_argument("--teacher", metavar="TEACHER_DIR",
                         help="distil this privileged teacher (cmnav train teacher) by DAgger instead of PPO: the student "
                         "flies a teacher/student mixture, the teacher labels every state it visits; the student's depth is "
                         "corrupted (--corruption), the teacher's is clean")  # fmt: skip
     _config_option(policy, "--beta-decay-env-steps", "training.policy.dagger:DaggerConfig.beta_decay_env_steps", type=int,
-                   help="DAgger: env steps over which the teacher's share of the actions falls from 1 to 0")
+                   help="DAgger: env steps over which the teacher's share of the actions falls from --beta-start to 0")
+    _config_option(policy, "--beta-start", "training.policy.dagger:DaggerConfig.beta_start", type=float,
+                   help="DAgger: the teacher's share of the executed actions at the start (0: the student flies from the "
+                   "first step, e.g. with --init-from a distilled student)")  # fmt: skip
     _config_option(policy, "--projector-off-episode-fraction", "training.policy.dagger:DaggerConfig.projector_off_episode_fraction", type=float,
                    help="DAgger: share of episodes whose depth is lost like a D455 without its projector")
     add_precision(policy)
@@ -555,6 +596,8 @@ def build_parser() -> argparse.ArgumentParser:
     eval_cmwae.add_argument("--patch-sides", type=side_range, metavar="MIN-MAX",
                             help="side range of the square patches in px at 224x224 (default 1-50, Table I's; "
                             "100-100: S2's training squares; 1-30: the policy's training patches)")  # fmt: skip
+    _config_option(eval_cmwae, "--near-m", "training.cmwae.evaluate:CmwaeEvalConfig.near_m", type=float,
+                   help="the near-surface MSE column: pixels whose true depth is below this (m)")  # fmt: skip
     eval_cmwae.add_argument("--json", action="store_true", help="print the result as JSON on the last line")
     add_precision(eval_cmwae)
     eval_cmwae.set_defaults(func=_cmd_eval_cmwae)

@@ -65,6 +65,17 @@ def test_train_checkpoint_resume_and_eval(dataset, tmp_path):
     for plot in result["plots"].values():
         assert os.path.getsize(plot) > 1000
     assert result["patch_sides_px"] == [1, 50]
+    # the near-surface column: below 1000 m every pixel of these closed rooms is near, so it is the
+    # whole-frame MSE; below 1 cm none is
+    for near_m, expected in (("1000", [r["mse_e3"] for r in result["rows"]]), ("0.01", [None] * 5)):
+        stdout = _cmnav("eval", "cmwae", "--checkpoint", str(out), "--data", str(dataset), "--max-images", "3",
+                        "--near-m", near_m, "--out", str(tmp_path / f"near{near_m}"), "--json")  # fmt: skip
+        near = json.loads(stdout.strip().splitlines()[-1])
+        got = [r["near_mse_e3"] for r in near["rows"]]
+        assert got == expected if expected[0] is None else got == pytest.approx(expected, rel=1e-3)
+        assert [r["near_images"] for r in near["rows"]] == [3 if expected[0] else 0] * 5
+        assert f"MSE < {float(near_m):g} m" in near["table"]
+    assert 0.0 < result["rows"][0]["near_pixels_pct"] < 100.0 and result["near_m"] == 1.5
 
     # S2's own 100 px squares instead of Table I's 1-50 px patches: other masks, same coverages.
     stdout = _cmnav("eval", "cmwae", "--checkpoint", str(out), "--data", str(dataset), "--max-images", "3",
@@ -143,6 +154,44 @@ def test_latent_anchoring_pulls_corrupted_latents_to_clean_ones_with_the_decoder
     after = _latent_gap(anchored.encoder, base.encoder, gray, depth, corrupted)
     clean_drift = _latent_gap(anchored.encoder, base.encoder, gray, depth, depth)
     assert after < 0.5 * before and clean_drift < before, (before, after, clean_drift)
+
+
+def test_consistency_fine_tune_on_two_datasets_pulls_corrupted_latents_to_its_own_clean_ones(dataset, tmp_path):
+    base_dir, out, second = tmp_path / "base", tmp_path / "tuned", tmp_path / "second"
+    generate_dataset(second, DatasetSpec(count=24, seed=5, levels=(10,), frames_per_room=4))
+    torch.manual_seed(0)
+    config = make_config("tiny")
+    base = Cmwae(config)
+    with torch.no_grad():  # a latent that responds to depth, as in the anchoring test
+        base.encoder.features["depth"][0].weight.mul_(3.0)
+        base.encoder.embed["depth"][1].weight.mul_(30.0)
+    save_weights(base_dir, base, "cmwae", dataclasses.asdict(config), 0, {})
+    _cmnav(*TRAIN, "--data", str(dataset), str(second), "--scheme", "s2", "--out", str(out), "--steps", "40", "--lr", "1e-3",
+           "--init-from", str(base_dir), "--consistency-weight", "20", "--mmd-weight", "0.01", "--precision", "fp32",
+           "--val-images", "4")  # fmt: skip
+    base, _ = load_cmwae(base_dir)
+    tuned, card = load_cmwae(out)
+    assert card["meta"]["extra_datasets"] == [str(second)] and card["meta"]["train"]["consistency_weight"] == 20.0
+    # encoder and decoder both learnt (nothing frozen, unlike anchoring)
+    for part in ("encoder", "decoder"):
+        before, after = getattr(base, part).state_dict(), getattr(tuned, part).state_dict()
+        assert any(not torch.equal(after[k], v) for k, v in before.items()), part
+    # the corrupted latent came closer to the encoder's own latent of the clean pair, on images of both datasets
+    for root in (dataset, second):
+        gray, depth = (torch.stack(t) for t in zip(*[GrayDepthDataset(root, "train")[i] for i in range(12)]))
+        masks = patch_masks(torch.full((12,), 0.5), PatchScheme(40, 40, 0.5, 0.5), torch.Generator().manual_seed(0))
+        corrupted = corrupt_depth(depth, masks)
+        before = _latent_gap(base.encoder, base.encoder, gray, depth, corrupted)
+        after = _latent_gap(tuned.encoder, tuned.encoder, gray, depth, corrupted)
+        assert after < 0.5 * before, (root, before, after)
+
+
+def test_a_missing_extra_dataset_is_named(dataset, tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "cmnav", *TRAIN, "--data", str(dataset), str(tmp_path / "nowhere"),
+                           "--out", str(tmp_path / "x"), "--steps", "1"], capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert proc.returncode != 0 and f"dataset folder {tmp_path / 'nowhere'} not found" in proc.stderr
+    with pytest.raises(ValueError, match="consistency_weight and anchor_from"):
+        CmwaeTrainConfig(data_dir="d", out_dir="o", steps=1, anchor_from="a", consistency_weight=1.0).validate()
 
 
 def test_latent_anchoring_refuses_a_wrong_anchor(dataset, tmp_path):

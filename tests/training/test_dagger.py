@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from collections import Counter
 from dataclasses import asdict
 from pathlib import Path
 
@@ -19,11 +20,12 @@ from export.policy_onnx import PARITY_TOLERANCE, ExportError, export_policy, loa
 from runtime.contract import constants as c
 from runtime.contract.constants import STATE_DIM
 from runtime.model import PolicyModel
-from training.checkpoint import load_train_state, save_weights
+from training.checkpoint import checkpoint_fingerprint, load_train_state, save_weights
 from training.cmwae.model import Cmwae, make_config
+from training.data.tartanair import GrayDepthDataset, find_samples
 from training.policy.dagger import DaggerConfig, collect, distill, load_teacher
 from training.policy.env import CurriculumConfig, NavEnv, NavEnvConfig
-from training.policy.network import ActorCritic, PolicyConfig
+from training.policy.network import ActorCritic, PolicyConfig, load_policy
 
 pytestmark = pytest.mark.timeout(300)
 GAP_SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "student-gap.py"
@@ -171,6 +173,22 @@ def test_the_distilled_student_exports_and_the_runtime_loads_it(trained, tmp_pat
     step = model.step(inputs.gray[0, 0], inputs.depth[0, 0], inputs.state[0], inputs.hidden[0])
     np.testing.assert_allclose(step.action, reference[c.ONNX_OUTPUT_ACTION][0], atol=PARITY_TOLERANCE)
 
+    # a student distilled before starts a new DAgger run on another encoder: its weights, the latent
+    # statistics re-estimated on the new encoder; with --beta-start 0 the student flies from the first step
+    torch.manual_seed(1)
+    save_weights(trained / "enc2", Cmwae(make_config("tiny")), "cmwae", asdict(make_config("tiny")), 0, {"train": {"scheme": "s2"}})
+    again = tmp_path / "again"
+    _cmnav("train", "policy", "--teacher", str(trained / "teacher"), "--encoder", str(trained / "enc2"), "--out", str(again),
+           "--size", "tiny", "--envs", "4", "--rollout", "8", "--minibatches", "2", "--steps", "32", "--precision", "fp32",
+           "--init-from", str(out), "--beta-start", "0")  # fmt: skip
+    again_card = json.loads((again / "model.json").read_text())
+    assert again_card["meta"]["init_from"]["dir"] == str(out) and again_card["meta"]["init_from"]["latent_stats_reestimated"]
+    assert again_card["meta"]["train"]["beta_start"] == 0.0 and load_train_state(again)["init_from"]["dir"] == str(out)
+    source, tuned = load_policy(out)[0].state_dict(), load_policy(again)[0].state_dict()
+    assert not torch.equal(source["obs_norm.mean"][STATE_DIM:], tuned["obs_norm.mean"][STATE_DIM:])
+    assert torch.nn.functional.cosine_similarity(  # 32 steps of imitation moved the weights a little, from the source's
+        source["gru.weight_hh"].flatten(), tuned["gru.weight_hh"].flatten(), dim=0) > 0.9
+
     # scripts/student-gap.py: the student flies, the teacher labels its states, the decoder reconstructs
     proc = subprocess.run([sys.executable, str(GAP_SCRIPT), "--student", str(out), "--encoder", str(trained / "enc"),
                            "--teacher", str(trained / "teacher"), "--levels", "3", "--episodes", "3"],
@@ -185,6 +203,43 @@ def test_the_distilled_student_exports_and_the_runtime_loads_it(trained, tmp_pat
         assert m["steps"] >= 1 and 0.0 <= m["near_share"] <= 1.0
         assert all(np.isfinite(m[k]) and m[k] >= 0.0 for k in ("action_mse", "recon_mse", "recon_mse_near"))
         assert m["action_mse"] <= 4.0  # both actions lie in [-1, 1]
+
+
+def test_flight_frames_are_recorded_clean_along_a_policy_s_flights_with_crash_windows_whole(trained, tmp_path):
+    """`cmnav dataset --policy`: a tiny student flies (it crashes often); with --every-steps
+    larger than any flight, a flight keeps its first frame, plus its last second when it crashed."""
+    policy_dir, out = tmp_path / "student", tmp_path / "frames"
+    torch.manual_seed(0)
+    config = PolicyConfig(mlp_sizes=(4,), gru_size=2)
+    save_weights(policy_dir, ActorCritic(config), "policy", config.to_json(), 0,
+                 {"role": "policy", "encoder_fingerprint": checkpoint_fingerprint(trained / "enc")})  # fmt: skip
+    stdout, _ = _cmnav("dataset", "--policy", str(policy_dir), "--encoder", str(trained / "enc"), "--out", str(out),
+                       "--count", "40", "--envs", "4", "--every-steps", "1000", "--levels", "4", "6")  # fmt: skip
+    assert "wrote 40 gray/depth pairs" in stdout
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["frames"] == 40 and manifest["flight_outcomes"]["crash"] >= 1
+    samples = find_samples(out)
+    per_flight = Counter(s.trajectory for s in samples)
+    assert len(samples) == 40 and len(per_flight) == manifest["flights_with_frames"]
+    assert {t.split("/")[0][:10] for t in per_flight} <= {"flight_L04", "flight_L05", "flight_L06"}
+    # 1 frame per flight, plus up to the 15-step window of each crash
+    assert max(per_flight.values()) <= 1 + 15 and manifest["frames_added_from_crash_windows"] == 40 - len(per_flight)
+    assert manifest["frames_added_from_crash_windows"] >= 1
+    ended = manifest["outcome_by_trajectory"]  # a flight with more than its first frame ended in a crash
+    assert set(ended) <= {t.split("/")[0] for t in per_flight} and "crash" in ended.values()
+    assert all(ended.get(t.split("/")[0]) == "crash" for t, n in per_flight.items() if n > 1)
+    for sample in samples[:10]:  # the kept depth is the clean render: no patch holes
+        assert np.isfinite(np.load(sample.depth_path)).all() and (np.load(sample.depth_path) > 0).all()
+    gray, depth = GrayDepthDataset(out, "train")[0]  # a dataset `cmnav train cmwae --data` reads
+    assert gray.shape == depth.shape == (1, 224, 224)
+
+    teacher = subprocess.run([sys.executable, "-m", "cmnav", "dataset", "--policy", str(trained / "teacher"), "--encoder",
+                              str(trained / "enc"), "--out", str(tmp_path / "t"), "--count", "2"],
+                             capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert teacher.returncode != 0 and "is a privileged teacher" in teacher.stderr
+    alone = subprocess.run([sys.executable, "-m", "cmnav", "dataset", "--policy", str(policy_dir), "--out", str(tmp_path / "a"),
+                            "--count", "2"], capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert alone.returncode == 2 and "--policy and --encoder go together" in alone.stderr
 
 
 def test_a_policy_is_not_taken_for_a_teacher(tmp_path):

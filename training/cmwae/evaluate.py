@@ -1,7 +1,9 @@
 """`cmnav eval cmwae`: Table I — mean depth-reconstruction MSE and SSIM on the held-out split at
 0/20/30/40/50 % evaluation corruption (square patches of side 1..50 px, or other sides to see how the
 encoder copes with S2's 100 px squares or the policy's 1..30 px patches), as a markdown table like
-the paper's, plus MSE/SSIM box plots and a grid of example inputs and reconstructions.
+the paper's, plus MSE/SSIM box plots and a grid of example inputs and reconstructions.  A column the
+paper has not: the MSE over the surfaces nearer than ``near_m`` (per image that has any, then
+averaged), the obstacles a policy is about to hit, which the whole-frame mean dilutes.
 
 The table needs only torch: SSIM comes from pytorch-msssim, or from its wheel in vendor/ where it
 is not installed (training.vendored).  The plots are drawn with OpenCV and skipped, with one
@@ -18,6 +20,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from sim.degradation import EVALUATION_COVERAGES, EVALUATION_PATCH_SIDES_PX, corrupt_depth, evaluation_scheme, patch_masks
+from runtime.contract.constants import DEPTH_INVALID_VALUE, DEPTH_MAX_M
 from sim.plot import opencv_for_drawing
 
 from ..data.tartanair import GrayDepthDataset
@@ -42,6 +45,7 @@ class CmwaeEvalConfig:
     coverages: tuple[float, ...] = EVALUATION_COVERAGES
     patch_sides_px: tuple[int, int] = EVALUATION_PATCH_SIDES_PX  # Table I's; e.g. (100, 100): S2's own squares
     precision: str = "auto"  # training.fastpath: the encoder under bf16 autocast where the CPU has it (decoder fp32)
+    near_m: float = 1.5  # the near-surface column: true depth below this (m), invalid pixels excluded
 
 
 @torch.no_grad()
@@ -56,7 +60,7 @@ def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
     examples: dict[float, tuple] = {}
     for coverage in config.coverages:
         generator = torch.Generator().manual_seed(config.seed)  # same patches for every model
-        mse, sim, actual = [], [], []
+        mse, sim, actual, near_mse, near_share = [], [], [], [], []
         seen = 0
         for gray, depth in loader:
             if config.max_images is not None:
@@ -68,19 +72,28 @@ def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
             with path.autocast(config.device):
                 _, recon = model(path.image(gray.to(config.device)), path.image(corrupted.to(config.device)))
             recon = recon.float().cpu()
-            mse += ((recon - depth) ** 2).mean(dim=(1, 2, 3)).tolist()
+            squared = (recon - depth) ** 2
+            mse += squared.mean(dim=(1, 2, 3)).tolist()
+            near = (depth > DEPTH_INVALID_VALUE) & (depth < config.near_m / DEPTH_MAX_M)
+            near_count = near.sum(dim=(1, 2, 3))
+            near_share += (near_count / near[0].numel()).tolist()
+            near_mse += [v for v, k in zip(((squared * near).sum(dim=(1, 2, 3)) / near_count.clamp(min=1)).tolist(),
+                                           near_count.tolist()) if k > 0]  # fmt: skip
             sim += ssim(recon, depth, data_range=1.0, size_average=False).tolist()
             actual += masks.float().mean(dim=(1, 2)).tolist()
             if coverage not in examples:
                 examples[coverage] = (gray[:4], corrupted[:4], recon[:4], depth[:4])
             seen += depth.shape[0]
-        per_coverage[coverage] = {"mse": mse, "ssim": sim, "coverage": actual}
+        per_coverage[coverage] = {"mse": mse, "ssim": sim, "coverage": actual, "near_mse": near_mse, "near_share": near_share}
     rows = [
         {
             "corruption_pct": int(round(c * 100)),
             "actual_coverage_pct": round(100 * float(np.mean(v["coverage"])), 2),
             "mse_e3": round(1e3 * float(np.mean(v["mse"])), 3),
             "ssim_e2": round(1e2 * float(np.mean(v["ssim"])), 2),
+            "near_mse_e3": round(1e3 * float(np.mean(v["near_mse"])), 3) if v["near_mse"] else None,
+            "near_images": len(v["near_mse"]),
+            "near_pixels_pct": round(100 * float(np.mean(v["near_share"])), 2),
             "images": len(v["mse"]),
         }
         for c, v in per_coverage.items()
@@ -102,7 +115,8 @@ def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
         "patch_sides_px": list(config.patch_sides_px),
         "fast_path": path.name,
         "rows": rows,
-        "table": markdown_table(rows),
+        "near_m": config.near_m,
+        "table": markdown_table(rows, config.near_m),
         "mse_ratio_50_over_0": _ratio(rows),
         "out_dir": str(out),
         "plots": {name: str(path) for name, path in plots.items() if path is not None},
@@ -116,9 +130,12 @@ def _ratio(rows: list[dict]) -> float | None:
     return round(by[50] / by[0], 3) if 0 in by and 50 in by and by[0] > 0 else None
 
 
-def markdown_table(rows: list[dict]) -> str:
-    lines = ["| corruption | MSE (x10^-3) | SSIM (x10^-2) | images |", "|---|---|---|---|"]
-    lines += [f"| {r['corruption_pct']}% | {r['mse_e3']:.2f} | {r['ssim_e2']:.2f} | {r['images']} |" for r in rows]
+def markdown_table(rows: list[dict], near_m: float) -> str:
+    lines = [f"| corruption | MSE (x10^-3) | SSIM (x10^-2) | MSE < {near_m:g} m (x10^-3) | images (with near pixels) |",
+             "|---|---|---|---|---|"]  # fmt: skip
+    lines += [f"| {r['corruption_pct']}% | {r['mse_e3']:.2f} | {r['ssim_e2']:.2f} | "
+              f"{'-' if r['near_mse_e3'] is None else format(r['near_mse_e3'], '.2f')} | {r['images']} ({r['near_images']}) |"
+              for r in rows]  # fmt: skip
     return "\n".join(lines)
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import torch
 from torch.nn.parallel import DistributedDataParallel
-from torch.utils.data import DataLoader
+from torch.utils.data import ConcatDataset, DataLoader
 from torch.utils.data.distributed import DistributedSampler
 
 from sim.degradation import SCHEMES, corrupt_depth, corrupt_with_scheme, evaluation_scheme, patch_masks
@@ -36,6 +36,9 @@ CORRUPTION_SCHEMES = ("s1", "s2", "none")
 class CmwaeTrainConfig:
     data_dir: str
     out_dir: str
+    # More datasets whose train splits join data_dir's (e.g. frames along a policy's flights, `cmnav
+    # dataset --policy`); the validation curve stays on data_dir's val split, Table I's images.
+    extra_data_dirs: tuple[str, ...] = ()
     scheme: str = "s2"
     modalities: tuple[str, ...] = MODALITIES
     size: str = "paper"
@@ -57,6 +60,12 @@ class CmwaeTrainConfig:
     # learnt is depth-from-gray where depth is missing.  Starts from the anchor's weights.
     anchor_from: str | None = None
     anchor_weight: float = 1.0
+    # Cross-modal consistency, for fine-tuning encoder and decoder together (no anchor): loss +=
+    # consistency_weight * mean over the corrupted images of (z - sg[z(gray, clean depth)])^2, the
+    # latent of corrupted depth pulled toward this encoder's own latent of the same pair with clean
+    # depth.  Anchoring keeps the anchor's clean latents; this lets them improve (new views) while
+    # the corrupted latents follow them.
+    consistency_weight: float = 0.0
     seed: int = 0
     device: str = "cpu"
     workers: int = 2
@@ -82,6 +91,11 @@ class CmwaeTrainConfig:
             raise ValueError(f"corrupted_loss_weight={self.corrupted_loss_weight} must lie in (0, 100]")
         if not 0.0 < self.anchor_weight <= 1000.0:
             raise ValueError(f"anchor_weight={self.anchor_weight} must lie in (0, 1000]")
+        if not 0.0 <= self.consistency_weight <= 1000.0:
+            raise ValueError(f"consistency_weight={self.consistency_weight} must lie in [0, 1000]")
+        if self.consistency_weight > 0.0 and self.anchor_from is not None:
+            raise ValueError("consistency_weight and anchor_from both pull the corrupted latent: anchoring toward the "
+                             "anchor's clean latent, consistency toward this encoder's own; give one")  # fmt: skip
         if self.anchor_from is not None and self.init_from is not None:
             raise ValueError("anchor_from starts from the anchor's weights: give it or init_from, not both")
         if self.lr <= 0 or (self.lr_final is not None and not 0 <= self.lr_final <= self.lr):
@@ -134,7 +148,7 @@ def train_cmwae(config: CmwaeTrainConfig) -> Path:
 def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Path:
     out = Path(config.out_dir)
     torch.manual_seed(config.seed)
-    train_set = GrayDepthDataset(config.data_dir, "train")
+    train_set = ConcatDataset([GrayDepthDataset(d, "train") for d in (config.data_dir, *config.extra_data_dirs)])
     val_set = GrayDepthDataset(config.data_dir, "val")
     sampler = DistributedSampler(train_set, seed=config.seed) if info.enabled else None
     loader_generator = torch.Generator().manual_seed(config.seed)
@@ -173,6 +187,7 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
     desc = f"train cmwae ({config.scheme}, {'+'.join(config.modalities)})"
     progress = Progress(total_steps, desc, unit="steps", initial=step) if info.is_main else None
     meta = {"train": asdict(config), "world_size": info.world_size, "dataset": str(config.data_dir),
+            "extra_datasets": list(config.extra_data_dirs),
             "fast_path": {"name": path.name, "reason": path.reason}}  # fmt: skip
 
     def checkpoint() -> None:
@@ -206,6 +221,13 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
                     z_anchor = anchor(gray, path.image(depth))
                 losses["anchor"] = ((z.float() - z_anchor) ** 2).mean()
                 losses["loss"] = losses["loss"] + config.anchor_weight * losses["anchor"]
+            if config.consistency_weight > 0.0:
+                with torch.no_grad(), path.autocast(device):
+                    z_clean = model.encoder(gray, path.image(depth)).float()
+                corrupted_share = was_corrupted.to(device).float()
+                per_image = ((z.float() - z_clean) ** 2).mean(dim=1)
+                losses["consistency"] = (per_image * corrupted_share).sum() / corrupted_share.sum().clamp(min=1.0)
+                losses["loss"] = losses["loss"] + config.consistency_weight * losses["consistency"]
             lr = learning_rate(config, step, total_steps)
             for group in optimizer.param_groups:
                 group["lr"] = lr  # also overrides the rate a resumed optimizer state carries
@@ -223,7 +245,7 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
                 t_last, images = now, 0
                 if progress is not None:
                     progress.update(0, loss=values["loss"], mse=values["recon_mse"], mmd=values["mmd"],
-                                    **({"anchor": values["anchor"]} if "anchor" in values else {}))
+                                    **{k: values[k] for k in ("anchor", "consistency") if k in values})
             if progress is not None:
                 progress.update(1)
             if step % config.checkpoint_every == 0 and step < total_steps:

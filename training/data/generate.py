@@ -77,6 +77,18 @@ def sample_poses(world: WorldBatch, per_env: int, spec: DatasetSpec, generator: 
     return pos, quat_from_euler(tilt[:, 0], tilt[:, 1], yaw)
 
 
+def write_pair(out: Path, trajectory: str, index: int, gray_u8: torch.Tensor, depth_m: torch.Tensor) -> float:
+    """Write frame ``index`` of ``trajectory`` (``ENV`` of ENV/Easy/P000) in the TartanAir V1 layout:
+    the gray PNG and the depth in metres (.npy); returns the share of invalid depth pixels."""
+    image_path, depth_path = v1_paths(out, trajectory, DIFFICULTY, 0, index)
+    image_path.parent.mkdir(parents=True, exist_ok=True)
+    depth_path.parent.mkdir(parents=True, exist_ok=True)
+    depth = depth_m.numpy().astype(np.float32)
+    write_png(image_path, gray_u8.numpy())
+    np.save(depth_path, depth)
+    return float(np.mean(~np.isfinite(depth) | (depth <= 0)))
+
+
 def generate_dataset(out_dir: str | Path, spec: DatasetSpec, camera: CameraModel = CameraModel()) -> dict:
     """Render ``spec.count`` pairs under ``out_dir``; returns (and writes) a manifest."""
     spec.validate()
@@ -100,13 +112,8 @@ def generate_dataset(out_dir: str | Path, spec: DatasetSpec, camera: CameraModel
             if written >= spec.count:
                 break
             room = room_ids[k // spec.frames_per_room]
-            image_path, depth_path = v1_paths(out, env_name(levels[room], room), DIFFICULTY, 0, k % spec.frames_per_room)
-            image_path.parent.mkdir(parents=True, exist_ok=True)
-            depth_path.parent.mkdir(parents=True, exist_ok=True)
-            depth = frames.depth_m[k].numpy()
-            write_png(image_path, frames.gray_u8[k].numpy())
-            np.save(depth_path, depth.astype(np.float32))
-            invalid_fracs.append(float(np.mean(~np.isfinite(depth) | (depth <= 0))))
+            trajectory = env_name(levels[room], room)
+            invalid_fracs.append(write_pair(out, trajectory, k % spec.frames_per_room, frames.gray_u8[k], frames.depth_m[k]))
             written += 1
             progress.update(1)
     progress.close()

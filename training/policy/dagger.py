@@ -36,6 +36,7 @@ from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .env import CRASH, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder
 from .network import CHECKPOINT_KIND, STUDENT, TEACHER, ActorCritic, PolicyConfig, load_policy
+from .train import init_from_policy
 
 log = logging.getLogger(__name__)
 _SINGLE = DistInfo()  # one process: the teacher labels every step of its own envs
@@ -69,6 +70,9 @@ class DaggerConfig:
     precision: str = "auto"
     checkpoint_every: int = 20  # iterations
     resume: bool = False
+    # Start the student from this policy (weights and normaliser; the latent statistics re-estimated
+    # when it flew another encoder), e.g. a student distilled on the previous encoder.
+    init_from: str | None = None
     max_wall_s: float | None = None
     policy: PolicyConfig = PolicyConfig()
     env_overrides: dict = field(default_factory=dict)
@@ -214,9 +218,15 @@ def train_dagger(config: DaggerConfig) -> Path:
         env.generator.set_state(state["env_rng"])
         generator.set_state(state["rng"])
         iteration, env_steps = state["iteration"], state["env_steps"]
+        init_meta = state.get("init_from")
         log.info("resumed %s at iteration %d (%d env steps)", out, iteration, env_steps)
-    elif config.resume:
-        log.warning("--resume: no training state in %s, starting from scratch", out)
+        if config.init_from is not None:
+            log.info("--init-from %s ignored: resuming %s, which already started from it", config.init_from, out)
+    else:
+        if config.resume:
+            log.warning("--resume: no training state in %s, starting %s", out,
+                        "from scratch" if config.init_from is None else f"from {config.init_from}")  # fmt: skip
+        init_meta = None if config.init_from is None else init_from_policy(student, config.init_from, encoder_fingerprint, env)
     steps_per_iteration = config.rollout_steps * config.num_envs
     total_iterations = -(-config.env_steps // steps_per_iteration)
     writer = ScalarWriter(out / "tensorboard")
@@ -231,13 +241,15 @@ def train_dagger(config: DaggerConfig) -> Path:
         "encoder_scheme": encoder_card.get("meta", {}).get("train", {}).get("scheme"),
         "encoder_modalities": encoder_card["config"]["modalities"], "world_size": 1, "seed": config.seed,
     }  # fmt: skip
+    if init_meta is not None:
+        meta["init_from"] = init_meta
 
     def checkpoint() -> None:
         save_weights(out, student, CHECKPOINT_KIND, config.policy.to_json(), env_steps,
                      {**meta, "env_steps": env_steps, "iteration": iteration})  # fmt: skip
         save_train_state(out, {"model": student.state_dict(), "optimizer": optimizer.state_dict(), "iteration": iteration,
                                "env_steps": env_steps, "env_rng": env.generator.get_state(), "rng": generator.get_state(),
-                               "encoder_fingerprint": encoder_fingerprint})  # fmt: skip
+                               "encoder_fingerprint": encoder_fingerprint, "init_from": init_meta})  # fmt: skip
 
     obs = env.reset()
     carry = {"obs": obs, "teacher_obs": env.teacher_observation(), "starts": torch.ones(config.num_envs, dtype=torch.bool, device=device),

@@ -41,7 +41,7 @@ from sim.collision import DEFAULT_VEHICLE_RADIUS_M, collides
 from sim.degradation import RL_TRAINING, PatchScheme, ProjectorOffModel, corrupt_depth, patch_masks
 from sim.dynamics import DynamicsParams, QuadrotorDynamics, QuadState
 from sim.preprocess_torch import preprocess_depth_batch, preprocess_gray_batch
-from sim.render import render
+from sim.render import RenderOutput, render
 from sim.rotations import quat_from_euler, quat_multiply, rotate_about_z
 from sim.world import WorldBatch, WorldConfig, env_seed, make_worlds
 
@@ -321,6 +321,7 @@ class NavEnv:
         self.episode_masks = torch.zeros(n, IMAGE_SIZE_PX, IMAGE_SIZE_PX, dtype=torch.bool)
         self.projector_off_episode = torch.zeros(n, dtype=torch.bool)
         self.active = torch.ones(n, dtype=torch.bool, device=self.device)
+        self.last_render: RenderOutput | None = None
 
     # ---- episodes -------------------------------------------------------------------------
     @property
@@ -395,6 +396,7 @@ class NavEnv:
         t0 = time.perf_counter()
         cam_pos, cam_quat = camera_pose(self.state.pos_enu_m, self.state.quat_enu_flu, self.camera, self.jitter)
         out = render(self.world, cam_pos, cam_quat, self.camera)
+        self.last_render = out  # the clean frames of the current observation (camera resolution, before any corruption)
         t0 = self._timed("render", t0)
         depth_m = out.depth_m
         if cfg.corruption == "projector-off":

@@ -427,8 +427,8 @@ def build_parser() -> argparse.ArgumentParser:
         "curriculum levels; one room is one trajectory (ENV/Easy/P000), so splits are by room.  With --policy and "
         "--encoder, record them along that policy's own flights instead (levels drawn uniformly between the smallest "
         "and the largest --levels, kicks, the training corruption on what it sees; clean frames kept): one frame in "
-        "--every-steps of each flight and every frame of the last second before each crash, the close-up views a "
-        "crashing policy meets; one flight is one trajectory.",
+        "--every-steps of each flight and every frame of the last second before each crash, views random poses "
+        "rarely give; one flight is one trajectory.",
     )
     dataset.add_argument("--out", required=True, help="output directory")
     dataset.add_argument("--count", type=int, required=True, help="number of pairs")

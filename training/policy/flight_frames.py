@@ -1,13 +1,13 @@
 """`cmnav dataset --policy DIR --encoder DIR`: gray/depth pairs recorded along a policy's own
 flights, for fine-tuning the encoder on the views a flying policy meets.
 
-`cmnav dataset` renders random collision-free poses; a policy that crashes sees something else in
-its last second: the obstacle it is about to hit, filling the view from under a metre.  Those
-views are rare among random poses and common before a crash, and that is where the student's latent
-was measured to lose the obstacle (models/student-s2/MODEL_CARD.md).  Here the policy flies the
-batched sim (levels drawn uniformly, kicks, its training corruption on what it sees), and the clean
-frames along its trajectories are kept: one in ``every_steps`` of each flight, and every frame of
-the last ``crash_window_steps`` before each crash.  One flight is one trajectory
+`cmnav dataset` renders random collision-free poses, at least 0.4 m from anything, looking mostly
+down the room; a policy sees what its own flight brings, and in its last second before a crash the
+near object it is about to hit, which is where the student's latent was measured to lose it
+(models/student-s2/MODEL_CARD.md).  Here the policy flies the batched sim (levels drawn uniformly,
+kicks, its training corruption on what it sees), and the clean frames along its trajectories are
+kept: one in ``every_steps`` of each flight, and every frame of the last ``crash_window_steps``
+before each crash.  One flight is one trajectory
 (``flight_L05_E003_00012/Easy/P000``), so the splits of training.data.tartanair never put frames of
 one flight on both sides.
 """

@@ -37,7 +37,7 @@ class FlightFramesSpec:
     policy_dir: str
     encoder_dir: str
     count: int
-    seed: int = 0
+    seed: int  # of the rooms, levels, kicks and corruption (the CLI's --seed, as for random poses)
     min_level: int = 0
     max_level: int = 20
     num_envs: int = 32

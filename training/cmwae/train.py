@@ -222,11 +222,10 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
                 losses["anchor"] = ((z.float() - z_anchor) ** 2).mean()
                 losses["loss"] = losses["loss"] + config.anchor_weight * losses["anchor"]
             if config.consistency_weight > 0.0:
+                hit = was_corrupted.nonzero().squeeze(1).to(device)  # a clean image's clean latent is z itself
                 with torch.no_grad(), path.autocast(device):
-                    z_clean = model.encoder(gray, path.image(depth)).float()
-                corrupted_share = was_corrupted.to(device).float()
-                per_image = ((z.float() - z_clean) ** 2).mean(dim=1)
-                losses["consistency"] = (per_image * corrupted_share).sum() / corrupted_share.sum().clamp(min=1.0)
+                    z_clean = model.encoder(path.image(gray[hit]), path.image(depth[hit])).float()
+                losses["consistency"] = ((z.float()[hit] - z_clean) ** 2).mean(dim=1).sum() / max(len(hit), 1)
                 losses["loss"] = losses["loss"] + config.consistency_weight * losses["consistency"]
             lr = learning_rate(config, step, total_steps)
             for group in optimizer.param_groups:

@@ -81,21 +81,21 @@ def record_flight_frames(out_dir: str | Path, spec: FlightFramesSpec) -> dict:
     steps = torch.zeros(n, dtype=torch.long)  # per env: the step of its current flight
     recent: list[deque] = [deque() for _ in range(n)]  # per env: (flight, step, gray, depth) of the last crash_window_steps
     written: dict[str, int] = {}  # trajectory -> frames written
-    invalid_fracs: list[float] = []
+    invalid_fracs: list[float] = []  # one per frame written
     outcomes = dict.fromkeys(OUTCOMES.values(), 0)  # of the flights finished
     outcome_of: dict[str, str] = {}  # trajectory -> how its flight ended (flights still running are absent)
     from_crash_windows = 0
     progress = Progress(spec.count, f"flight frames {out}", unit="frames")
 
     def write(name: str, gray: torch.Tensor, depth: torch.Tensor) -> bool:
-        if sum(written.values()) >= spec.count:
+        if len(invalid_fracs) >= spec.count:
             return False
         invalid_fracs.append(write_pair(out, name, written.get(name, 0), gray, depth))
         written[name] = written.get(name, 0) + 1
         progress.update(1)
         return True
 
-    while sum(written.values()) < spec.count:
+    while len(invalid_fracs) < spec.count:
         frames = env.last_render
         for i in range(n):
             flight = f"flight_L{int(env.episode_level[i]):02d}_E{i:03d}_{flights[i]:05d}"
@@ -122,7 +122,7 @@ def record_flight_frames(out_dir: str | Path, spec: FlightFramesSpec) -> dict:
         obs, starts = result.obs, result.done
     progress.close()
     manifest = {"source": "policy flights", "spec": asdict(spec), "policy_env_steps": card.get("step"),
-                "frames": sum(written.values()), "flights_with_frames": len(written), "flight_outcomes": outcomes,
+                "frames": len(invalid_fracs), "flights_with_frames": len(written), "flight_outcomes": outcomes,
                 "frames_added_from_crash_windows": from_crash_windows,
                 "outcome_by_trajectory": {name: outcome_of[name] for name in written if name in outcome_of},
                 "layout": "tartanair-v1", "invalid_depth_frac_mean": float(np.mean(invalid_fracs))}  # fmt: skip

@@ -169,7 +169,7 @@ def _cmd_train_cmwae(args: argparse.Namespace) -> int:
         lr_final=args.lr_final, resume=args.resume, max_wall_s=None if args.minutes is None else args.minutes * 60.0,
         init_from=args.init_from, anchor_from=args.anchor,
         **_given(args, "scheme", "modalities", "size", "batch_size", "lr", "mmd_weight", "seed", "device", "workers",
-                 "checkpoint_every", "precision", "corrupted_loss_weight", "anchor_weight", "consistency_weight", "val_images"),
+                 "checkpoint_every", "precision", "corrupted_loss_weight", "anchor_weight", "consistency_weight", "near_weight", "near_m", "val_images"),
     )  # fmt: skip
     out = train_cmwae(config)
     print(f"checkpoint in {out}")
@@ -496,6 +496,11 @@ def build_parser() -> argparse.ArgumentParser:
     _config_option(cmwae, "--consistency-weight", "training.cmwae.train:CmwaeTrainConfig.consistency_weight", type=float,
                    help="fine-tuning encoder and decoder (--init-from, no --anchor): weight of the pull of each corrupted "
                    "image's latent toward this encoder's own latent of the same pair with clean depth")  # fmt: skip
+    _config_option(cmwae, "--near-weight", "training.cmwae.train:CmwaeTrainConfig.near_weight", type=float,
+                   help="extra weight of the pixels whose true surface is nearer than --near-m in each image's "
+                        "reconstruction error (0: the paper's plain mean)")  # fmt: skip
+    _config_option(cmwae, "--near-m", "training.cmwae.train:CmwaeTrainConfig.near_m", type=float,
+                   help="distance (m) under which --near-weight applies")
     add_precision(cmwae)
     cmwae.set_defaults(func=_cmd_train_cmwae)
 

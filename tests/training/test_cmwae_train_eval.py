@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from training.checkpoint import MAX_SHARD_BYTES, load_train_state, read_card, save_weights
+from training.cmwae.loss import cmwae_loss, near_surface_mask
 from training.cmwae.model import Cmwae, make_config
 from training.cmwae.train import CmwaeTrainConfig, learning_rate, load_cmwae
 from sim.degradation import PatchScheme, corrupt_depth, patch_masks
@@ -76,6 +77,9 @@ def test_train_checkpoint_resume_and_eval(dataset, tmp_path):
         assert [r["near_images"] for r in near["rows"]] == [3 if expected[0] else 0] * 5
         assert f"MSE < {float(near_m):g} m" in near["table"]
     assert 0.0 < result["rows"][0]["near_pixels_pct"] < 100.0 and result["near_m"] == 1.5
+    # the latent shift: none without corruption, some at 50 %
+    assert result["rows"][0]["latent_shift_over_var"] == 0.0 and result["rows"][4]["latent_shift_over_var"] > 0.0
+    assert result["latent_var"] > 0.0 and "latent shift / var" in result["table"]
 
     # S2's own 100 px squares instead of Table I's 1-50 px patches: other masks, same coverages.
     stdout = _cmnav("eval", "cmwae", "--checkpoint", str(out), "--data", str(dataset), "--max-images", "3",
@@ -154,6 +158,13 @@ def test_latent_anchoring_pulls_corrupted_latents_to_clean_ones_with_the_decoder
     after = _latent_gap(anchored.encoder, base.encoder, gray, depth, corrupted)
     clean_drift = _latent_gap(anchored.encoder, base.encoder, gray, depth, depth)
     assert after < 0.5 * before and clean_drift < before, (before, after, clean_drift)
+    # `cmnav eval cmwae`'s latent shift sees it too, on S2's squares at 50 %
+    shifts = []
+    for checkpoint in (base_dir, out):
+        stdout = _cmnav("eval", "cmwae", "--checkpoint", str(checkpoint), "--data", str(dataset), "--split", "train",
+                        "--max-images", "16", "--patch-sides", "100-100", "--precision", "fp32", "--json")  # fmt: skip
+        shifts.append(json.loads(stdout.strip().splitlines()[-1])["rows"][4]["latent_shift_over_var"])
+    assert shifts[1] < 0.5 * shifts[0], shifts
 
 
 def test_consistency_fine_tune_on_two_datasets_pulls_corrupted_latents_to_its_own_clean_ones(dataset, tmp_path):
@@ -184,6 +195,46 @@ def test_consistency_fine_tune_on_two_datasets_pulls_corrupted_latents_to_its_ow
         before = _latent_gap(base.encoder, base.encoder, gray, depth, corrupted)
         after = _latent_gap(tuned.encoder, tuned.encoder, gray, depth, corrupted)
         assert after < 0.5 * before, (root, before, after)
+
+
+def test_near_surface_weighting_is_a_weighted_mean_over_each_images_pixels():
+    target = torch.full((2, 1, 4, 4), 0.5)
+    target[0, 0, 0, :2] = 0.1  # two pixels 1 m away, one invalid (0): only the valid near ones weigh more
+    target[0, 0, 1, 0] = 0.0
+    recon = target + 0.1
+    recon[0, 0, 0, :2] += 0.2  # the near pixels are 0.3 off, the rest 0.1
+    z = torch.randn(2, 3, generator=torch.Generator().manual_seed(0))
+    weights = 1.0 + 9.0 * near_surface_mask(target, 1.5)
+    assert int(near_surface_mask(target, 1.5).sum()) == 2
+    losses = cmwae_loss(recon, target, z, 0.0, pixel_weights=weights)
+    near_image = (2 * 10 * 0.3**2 + 14 * 0.1**2) / (2 * 10 + 14)
+    assert float(losses["loss"]) == pytest.approx((near_image + 0.1**2) / 2, rel=1e-5)
+    assert float(losses["recon_mse"]) == pytest.approx(((2 * 0.3**2 + 14 * 0.1**2) / 16 + 0.1**2) / 2, rel=1e-5)
+    with pytest.raises(ValueError, match="near_m=12.0 must lie in"):
+        CmwaeTrainConfig(data_dir="d", out_dir="o", steps=1, near_weight=1.0, near_m=12.0).validate()
+
+
+def test_near_surface_weighting_lowers_the_near_error_more_than_the_plain_mean(dataset, tmp_path):
+    base_dir = tmp_path / "base"
+    _cmnav(*TRAIN, "--data", str(dataset), "--scheme", "none", "--out", str(base_dir), "--steps", "2", "--precision", "fp32")
+    near_m = 3.0
+    errors = {}
+    for near_weight in ("0", "30"):
+        out = tmp_path / f"near{near_weight}"
+        _cmnav(*TRAIN, "--data", str(dataset), "--scheme", "none", "--out", str(out), "--steps", "25", "--lr", "1e-3",
+               "--init-from", str(base_dir), "--near-weight", near_weight, "--near-m", str(near_m), "--precision", "fp32",
+               "--val-images", "4")  # fmt: skip
+        model, card = load_cmwae(out)
+        assert card["meta"]["train"]["near_weight"] == float(near_weight) and card["meta"]["train"]["near_m"] == near_m
+        gray, depth = (torch.stack(t) for t in zip(*[GrayDepthDataset(dataset, "train")[i] for i in range(24)]))
+        with torch.no_grad():
+            squared = (model(gray, depth)[1] - depth) ** 2
+        near = near_surface_mask(depth, near_m)
+        assert near.any() and not near.all()
+        errors[near_weight] = (float(squared[near].mean()), float(squared[~near].mean()))
+    # the same batches and start: the weighted run traded far error for near error
+    (plain_near, plain_far), (weighted_near, weighted_far) = errors["0"], errors["30"]
+    assert weighted_near < 0.8 * plain_near and weighted_far > plain_far, errors
 
 
 def test_a_missing_extra_dataset_is_named(dataset, tmp_path):

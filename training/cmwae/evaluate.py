@@ -3,7 +3,10 @@
 encoder copes with S2's 100 px squares or the policy's 1..30 px patches), as a markdown table like
 the paper's, plus MSE/SSIM box plots and a grid of example inputs and reconstructions.  A column the
 paper has not: the MSE over the surfaces nearer than ``near_m`` (per image that has any, then
-averaged), the obstacles a policy is about to hit, which the whole-frame mean dilutes.
+averaged), the obstacles a policy is about to hit, which the whole-frame mean dilutes; and the
+latent shift, what the policy sees of the corruption: the mean squared distance per dimension of
+the latent of corrupted depth from the latent of the same pair with clean depth, over the clean
+latents' variance per dimension (0: corruption leaves the latent where it was).
 
 The table needs only torch: SSIM comes from pytorch-msssim, or from its wheel in vendor/ where it
 is not installed (training.vendored).  The plots are drawn with OpenCV and skipped, with one
@@ -20,12 +23,12 @@ import torch
 from torch.utils.data import DataLoader
 
 from sim.degradation import EVALUATION_COVERAGES, EVALUATION_PATCH_SIDES_PX, corrupt_depth, evaluation_scheme, patch_masks
-from runtime.contract.constants import DEPTH_INVALID_VALUE, DEPTH_MAX_M
 from sim.plot import opencv_for_drawing
 
 from ..data.tartanair import GrayDepthDataset
 from ..fastpath import choose_fast_path
 from ..vendored import import_vendored
+from .loss import near_surface_mask
 from .train import load_cmwae
 
 ssim = import_vendored("pytorch_msssim").ssim
@@ -58,23 +61,28 @@ def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
     loader = DataLoader(dataset, batch_size=config.batch_size, num_workers=0)
     per_coverage: dict[float, dict[str, list[float]]] = {}
     examples: dict[float, tuple] = {}
+    clean_latents: list[torch.Tensor] = []  # per batch, from the first coverage's pass
     for coverage in config.coverages:
         generator = torch.Generator().manual_seed(config.seed)  # same patches for every model
-        mse, sim, actual, near_mse, near_share = [], [], [], [], []
+        mse, sim, actual, near_mse, near_share, latent_shift = [], [], [], [], [], []
         seen = 0
-        for gray, depth in loader:
+        for batch, (gray, depth) in enumerate(loader):
             if config.max_images is not None:
                 if seen >= config.max_images:
                     break
                 gray, depth = gray[: config.max_images - seen], depth[: config.max_images - seen]
             masks = patch_masks(torch.full((depth.shape[0],), coverage), schemes[coverage], generator)
             corrupted = corrupt_depth(depth, masks)
+            gray_in = path.image(gray.to(config.device))
             with path.autocast(config.device):
-                _, recon = model(path.image(gray.to(config.device)), path.image(corrupted.to(config.device)))
+                z, recon = model(gray_in, path.image(corrupted.to(config.device)))
+                if batch == len(clean_latents):
+                    clean_latents.append(model.encoder(gray_in, path.image(depth.to(config.device))).float().cpu())
+            latent_shift += ((z.float().cpu() - clean_latents[batch]) ** 2).mean(dim=1).tolist()
             recon = recon.float().cpu()
             squared = (recon - depth) ** 2
             mse += squared.mean(dim=(1, 2, 3)).tolist()
-            near = (depth > DEPTH_INVALID_VALUE) & (depth < config.near_m / DEPTH_MAX_M)
+            near = near_surface_mask(depth, config.near_m)
             near_count = near.sum(dim=(1, 2, 3))
             near_share += (near_count / near[0].numel()).tolist()
             near_mse += [v for v, k in zip(((squared * near).sum(dim=(1, 2, 3)) / near_count.clamp(min=1)).tolist(),
@@ -84,7 +92,9 @@ def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
             if coverage not in examples:
                 examples[coverage] = (gray[:4], corrupted[:4], recon[:4], depth[:4])
             seen += depth.shape[0]
-        per_coverage[coverage] = {"mse": mse, "ssim": sim, "coverage": actual, "near_mse": near_mse, "near_share": near_share}
+        per_coverage[coverage] = {"mse": mse, "ssim": sim, "coverage": actual, "near_mse": near_mse, "near_share": near_share,
+                                  "latent_shift": latent_shift}  # fmt: skip
+    latent_var = float(torch.cat(clean_latents).var(dim=0).mean())
     rows = [
         {
             "corruption_pct": int(round(c * 100)),
@@ -94,6 +104,7 @@ def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
             "near_mse_e3": round(1e3 * float(np.mean(v["near_mse"])), 3) if v["near_mse"] else None,
             "near_images": len(v["near_mse"]),
             "near_pixels_pct": round(100 * float(np.mean(v["near_share"])), 2),
+            "latent_shift_over_var": float(f"{float(np.mean(v['latent_shift'])) / max(latent_var, 1e-12):.4g}"),
             "images": len(v["mse"]),
         }
         for c, v in per_coverage.items()
@@ -116,6 +127,7 @@ def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
         "fast_path": path.name,
         "rows": rows,
         "near_m": config.near_m,
+        "latent_var": float(f"{latent_var:.4g}"),
         "table": markdown_table(rows, config.near_m),
         "mse_ratio_50_over_0": _ratio(rows),
         "out_dir": str(out),
@@ -131,11 +143,11 @@ def _ratio(rows: list[dict]) -> float | None:
 
 
 def markdown_table(rows: list[dict], near_m: float) -> str:
-    lines = [f"| corruption | MSE (x10^-3) | SSIM (x10^-2) | MSE < {near_m:g} m (x10^-3) | images (with near pixels) |",
-             "|---|---|---|---|---|"]  # fmt: skip
+    lines = [f"| corruption | MSE (x10^-3) | SSIM (x10^-2) | MSE < {near_m:g} m (x10^-3) | latent shift / var | "
+             "images (with near pixels) |", "|---|---|---|---|---|---|"]  # fmt: skip
     lines += [f"| {r['corruption_pct']}% | {r['mse_e3']:.2f} | {r['ssim_e2']:.2f} | "
-              f"{'-' if r['near_mse_e3'] is None else format(r['near_mse_e3'], '.2f')} | {r['images']} ({r['near_images']}) |"
-              for r in rows]  # fmt: skip
+              f"{'-' if r['near_mse_e3'] is None else format(r['near_mse_e3'], '.2f')} | {r['latent_shift_over_var']:.3f} | "
+              f"{r['images']} ({r['near_images']}) |" for r in rows]  # fmt: skip
     return "\n".join(lines)
 
 

@@ -6,6 +6,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from runtime.contract.constants import DEPTH_INVALID_VALUE, DEPTH_MAX_M
+
 IMQ_SCALES = (0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
 
 
@@ -31,14 +33,22 @@ def mmd_imq(z: Tensor, prior_z: Tensor, sigma2: float = 1.0, scales: tuple[float
     return stat
 
 
+def near_surface_mask(depth: Tensor, near_m: float) -> Tensor:
+    """The valid pixels of normalised depth whose surface is nearer than ``near_m`` metres."""
+    return (depth > DEPTH_INVALID_VALUE) & (depth < near_m / DEPTH_MAX_M)
+
+
 def cmwae_loss(recon: Tensor, target: Tensor, z: Tensor, mmd_weight: float, generator: torch.Generator | None = None,
-               image_weights: Tensor | None = None) -> dict[str, Tensor]:  # fmt: skip
-    """-> {"loss", "recon_mse", "mmd"}; the prior sample is drawn from N(0, I).  ``image_weights``
-    [B] weigh each image's reconstruction error in the loss (a weighted mean); ``recon_mse``
-    stays the plain mean."""
-    per_image = ((recon - target) ** 2).flatten(1).mean(dim=1)
-    recon_mse = per_image.mean()
-    weighted = recon_mse if image_weights is None else (per_image * image_weights).sum() / image_weights.sum()
+               image_weights: Tensor | None = None, pixel_weights: Tensor | None = None) -> dict[str, Tensor]:  # fmt: skip
+    """-> {"loss", "recon_mse", "mmd"}; the prior sample is drawn from N(0, I).  ``pixel_weights``
+    (the target's shape) make each image's error a weighted mean over its pixels; ``image_weights``
+    [B] weigh each image's error in the batch mean.  ``recon_mse`` stays the plain mean."""
+    squared = (recon - target) ** 2
+    per_image_mse = squared.flatten(1).mean(dim=1)
+    recon_mse = per_image_mse.mean()
+    per_image = per_image_mse if pixel_weights is None else \
+        (squared * pixel_weights).flatten(1).sum(dim=1) / pixel_weights.flatten(1).sum(dim=1)
+    weighted = per_image.mean() if image_weights is None else (per_image * image_weights).sum() / image_weights.sum()
     prior = torch.randn(z.shape, generator=generator, device=z.device, dtype=z.dtype)
     mmd = mmd_imq(z, prior)
     return {"loss": weighted + mmd_weight * mmd, "recon_mse": recon_mse, "mmd": mmd}

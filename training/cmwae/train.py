@@ -15,6 +15,7 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import ConcatDataset, DataLoader
 from torch.utils.data.distributed import DistributedSampler
 
+from runtime.contract.constants import DEPTH_MAX_M
 from sim.degradation import SCHEMES, corrupt_depth, corrupt_with_scheme, evaluation_scheme, patch_masks
 
 from ..checkpoint import load_train_state, load_weights, read_card, save_train_state, save_weights
@@ -24,7 +25,7 @@ from ..fastpath import PRECISIONS, FastPath, FrozenEncoder, choose_fast_path
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .curve import record_val_point
-from .loss import cmwae_loss
+from .loss import cmwae_loss, near_surface_mask
 from .model import MODALITIES, Cmwae, CmwaeConfig, make_config
 
 log = logging.getLogger(__name__)
@@ -66,6 +67,11 @@ class CmwaeTrainConfig:
     # depth.  Anchoring keeps the anchor's clean latents; this lets them improve (new views) while
     # the corrupted latents follow them.
     consistency_weight: float = 0.0
+    # Near-surface weighting: each image's reconstruction error is a weighted mean over its pixels,
+    # weight 1 + near_weight where the true surface is nearer than near_m (m).  A small near object
+    # (a panel's edge) is what the vehicle hits, and the plain mean gives it almost no weight.
+    near_weight: float = 0.0
+    near_m: float = 1.5
     seed: int = 0
     device: str = "cpu"
     workers: int = 2
@@ -93,6 +99,10 @@ class CmwaeTrainConfig:
             raise ValueError(f"anchor_weight={self.anchor_weight} must lie in (0, 1000]")
         if not 0.0 <= self.consistency_weight <= 1000.0:
             raise ValueError(f"consistency_weight={self.consistency_weight} must lie in [0, 1000]")
+        if not 0.0 <= self.near_weight <= 1000.0:
+            raise ValueError(f"near_weight={self.near_weight} must lie in [0, 1000]")
+        if not 0.0 < self.near_m <= DEPTH_MAX_M:
+            raise ValueError(f"near_m={self.near_m} must lie in (0, {DEPTH_MAX_M:g}] m, the depth range")
         if self.consistency_weight > 0.0 and self.anchor_from is not None:
             raise ValueError("consistency_weight and anchor_from both pull the corrupted latent: anchoring toward the "
                              "anchor's clean latent, consistency toward this encoder's own; give one")  # fmt: skip
@@ -215,7 +225,8 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
             with path.autocast(device):
                 z, recon = ddp_model(gray, corrupted)
             weights = torch.where(was_corrupted, config.corrupted_loss_weight, 1.0).to(device)
-            losses = cmwae_loss(recon.float(), depth, z.float(), config.mmd_weight, loss_generator, weights)
+            pixel_weights = 1.0 + config.near_weight * near_surface_mask(depth, config.near_m) if config.near_weight else None
+            losses = cmwae_loss(recon.float(), depth, z.float(), config.mmd_weight, loss_generator, weights, pixel_weights)
             if anchor is not None:
                 with torch.no_grad():
                     z_anchor = anchor(gray, path.image(depth))

@@ -461,8 +461,9 @@ def build_parser() -> argparse.ArgumentParser:
     cmwae.add_argument("--data", required=True, nargs="+", metavar="DIR",
                        help="dataset directories; the train splits of all are trained on, the validation curve stays on "
                        "the first one's val split (e.g. --data runs/data/sim12k runs/data/flights)")  # fmt: skip
-    _config_option(cmwae, "--scheme", "training.cmwae.train:CmwaeTrainConfig.scheme", choices=["s1", "s2", "none"],
-                   help="training corruption (none: the clean-depth baseline)")
+    _config_option(cmwae, "--scheme", "training.cmwae.train:CmwaeTrainConfig.scheme", choices=["s1", "s2", "policy", "none"],
+                   help="training corruption (none: the clean-depth baseline; policy: the policy's 1-30 px patches at "
+                        "S2's coverages, for fine-tuning an encoder to what the student flies with)")  # fmt: skip
     cmwae.add_argument("--out", required=True, help="checkpoint directory (model.json + fp16 shards + train state)")
     _config_option(cmwae, "--modalities", "training.cmwae.train:CmwaeTrainConfig.modalities", type=_name_tuple,
                    choices=[("gray", "depth"), ("depth",)], metavar="{gray,depth | depth}",

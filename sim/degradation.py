@@ -72,8 +72,11 @@ class PatchScheme:
 S1 = PatchScheme(50, 100, coverage_levels=S1_COVERAGE_LEVELS, coverage_shares=S1_COVERAGE_SHARES)
 S2 = PatchScheme(100, 100, min_coverage=0.20, max_coverage=0.50, pristine_fraction=0.5)
 RL_TRAINING = PatchScheme(1, 30, min_coverage=0.50, max_coverage=0.50)
+# Not the paper's: the policy's patches (1-30 px) at S2's coverages on S2's half of the images, to
+# fine-tune an encoder (latent anchoring) for the corruption the policy flies with, not S2's squares.
+POLICY_PATCHES = PatchScheme(1, 30, min_coverage=0.20, max_coverage=0.50, pristine_fraction=0.5)
 EVALUATION_COVERAGES = (0.0, 0.2, 0.3, 0.4, 0.5)
-SCHEMES = {"s1": S1, "s2": S2, "rl": RL_TRAINING}
+SCHEMES = {"s1": S1, "s2": S2, "rl": RL_TRAINING, "policy": POLICY_PATCHES}
 
 
 EVALUATION_PATCH_SIDES_PX = (1, 50)

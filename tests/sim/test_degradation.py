@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from sim.degradation import (
+    POLICY_PATCHES,
     RL_TRAINING,
     S1,
     S1_COVERAGE_LEVELS,
@@ -78,6 +79,14 @@ def test_s2_half_pristine_and_coverage_range():
     pristine = coverage == 0
     assert 0.45 < pristine.float().mean() < 0.55
     assert coverage[~pristine].min() >= 0.2 and coverage[~pristine].max() <= 0.5
+
+
+def test_policy_patches_are_the_policys_sides_at_s2s_coverages():
+    coverage = POLICY_PATCHES.sample_coverage(4000, _gen())
+    pristine = coverage == 0
+    assert 0.45 < pristine.float().mean() < 0.55
+    assert coverage[~pristine].min() >= 0.2 and coverage[~pristine].max() <= 0.5
+    assert (POLICY_PATCHES.min_side_px, POLICY_PATCHES.max_side_px) == (RL_TRAINING.min_side_px, RL_TRAINING.max_side_px)
 
 
 def test_s1_coverage_shares():

@@ -14,7 +14,7 @@ from training.checkpoint import MAX_SHARD_BYTES, load_train_state, read_card, sa
 from training.cmwae.loss import cmwae_loss, near_surface_mask
 from training.cmwae.model import Cmwae, make_config
 from training.cmwae.train import CmwaeTrainConfig, learning_rate, load_cmwae
-from sim.degradation import PatchScheme, corrupt_depth, patch_masks
+from sim.degradation import SCHEMES, PatchScheme, corrupt_depth, corrupt_with_scheme, patch_masks
 from training.data.generate import DatasetSpec, generate_dataset
 from training.data.tartanair import GrayDepthDataset
 
@@ -119,6 +119,17 @@ def test_depth_only_baseline_uses_the_same_command(dataset, tmp_path):
     _cmnav(*TRAIN, "--data", str(dataset), "--scheme", "none", "--modalities", "depth", "--out", str(out), "--steps", "2")
     model, card = load_cmwae(out)
     assert tuple(card["config"]["modalities"]) == ("depth",) and "gray" not in model.encoder.features
+
+
+def test_policy_scheme_corrupts_half_the_images_with_the_policys_patches(dataset, tmp_path):
+    out = tmp_path / "policy"
+    _cmnav(*TRAIN, "--data", str(dataset), "--scheme", "policy", "--out", str(out), "--steps", "2")
+    assert read_card(out, "cmwae")["meta"]["train"]["scheme"] == "policy"
+    depth = torch.rand(64, 1, 224, 224) * 0.9 + 0.05
+    corrupted, masks = corrupt_with_scheme(depth, SCHEMES["policy"], torch.Generator().manual_seed(0))
+    lost, hit = (corrupted == 0).flatten(1).float().mean(dim=1), masks.flatten(1).any(dim=1)
+    assert 20 <= int(hit.sum()) <= 44 and torch.all(lost[~hit] == 0)
+    assert lost[hit].min() >= 0.2 and lost[hit].max() <= 0.55  # the last patch may overshoot the target a little
 
 
 def _latent_gap(encoder, base, gray, depth, corrupted) -> float:

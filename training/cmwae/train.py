@@ -30,7 +30,7 @@ from .model import MODALITIES, Cmwae, CmwaeConfig, make_config
 
 log = logging.getLogger(__name__)
 CHECKPOINT_KIND = "cmwae"
-CORRUPTION_SCHEMES = ("s1", "s2", "none")
+CORRUPTION_SCHEMES = ("s1", "s2", "policy", "none")
 
 
 @dataclass(frozen=True)

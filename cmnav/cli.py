@@ -211,7 +211,7 @@ def _train_student(args: argparse.Namespace) -> int:
         policy=POLICY_SIZES[args.size], resume=args.resume, init_from=args.init_from,
         max_wall_s=None if args.minutes is None else args.minutes * 60.0,
         **_given(args, "device", "seed", "corruption", "minibatches", "max_level", "checkpoint_every", "precision", "lr",
-                 "beta_start", "beta_decay_env_steps", "projector_off_episode_fraction", num_envs="envs", rollout_steps="rollout",
+                 "beta_start", "beta_decay_env_steps", "projector_off_episode_fraction", "min_level", "near_weight", "near_m", num_envs="envs", rollout_steps="rollout",
                  env_steps="steps"),
     )  # fmt: skip
     out = train_dagger(config)
@@ -566,6 +566,14 @@ def build_parser() -> argparse.ArgumentParser:
                    "first step, e.g. with --init-from a distilled student)")  # fmt: skip
     _config_option(policy, "--projector-off-episode-fraction", "training.policy.dagger:DaggerConfig.projector_off_episode_fraction", type=float,
                    help="DAgger: share of episodes whose depth is lost like a D455 without its projector")
+    _config_option(policy, "--min-level", "training.policy.dagger:DaggerConfig.min_level", type=int,
+                   help="DAgger: the lowest obstacle level; each episode's level is drawn uniformly from "
+                   "[--min-level, --max-level]")  # fmt: skip
+    _config_option(policy, "--near-weight", "training.policy.dagger:DaggerConfig.near_weight", type=float,
+                   help="DAgger: extra weight, in the imitation loss, of the steps whose teacher sees a surface nearer "
+                   "than --near-m (0: every step alike)")  # fmt: skip
+    _config_option(policy, "--near-m", "training.policy.dagger:DaggerConfig.near_m", type=float,
+                   help="DAgger: distance (m) under which --near-weight applies")
     add_precision(policy)
     policy.set_defaults(func=_cmd_train_policy)
 

@@ -22,6 +22,7 @@ import torch
 from torch import nn
 
 from runtime.contract.constants import CONTROL_PERIOD_S, DEPTH_MAX_M, STATE_DIM
+from training.cmwae.loss import NEAR_SURFACE_M
 from training.cmwae.train import load_cmwae
 from training.policy.env import CRASH, SUCCESS
 from training.policy.evaluate import table2_env
@@ -98,7 +99,7 @@ def main() -> None:
     parser.add_argument("--teacher", required=True)
     parser.add_argument("--levels", default="5,15,20", type=lambda s: [int(x) for x in s.split(",")])
     parser.add_argument("--episodes", default=20, type=int)
-    parser.add_argument("--near-m", default=1.5, type=float, help="'near' pixels: true depth below this (default 1.5 m)")
+    parser.add_argument("--near-m", default=NEAR_SURFACE_M, type=float, help=f"'near' pixels: true depth below this (default {NEAR_SURFACE_M} m)")
     parser.add_argument("--seed", default=0, type=int)
     args = parser.parse_args()
     result = measure(args)

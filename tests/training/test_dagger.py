@@ -23,7 +23,7 @@ from runtime.model import PolicyModel
 from training.checkpoint import checkpoint_fingerprint, load_train_state, save_weights
 from training.cmwae.model import Cmwae, make_config
 from training.data.tartanair import GrayDepthDataset, find_samples
-from training.policy.dagger import DaggerConfig, collect, distill, load_teacher
+from training.policy.dagger import DaggerConfig, Sequences, collect, distill, load_teacher, near_surface_states
 from training.policy.env import CurriculumConfig, NavEnv, NavEnvConfig
 from training.policy.network import ActorCritic, PolicyConfig, load_policy
 
@@ -151,6 +151,53 @@ def test_distillation_fits_the_labels():
     assert last < 0.5 * first
 
 
+def test_near_surface_states_are_those_whose_teacher_sees_a_surface_nearer_than_near_m():
+    pixels = NavEnvConfig().privileged_obs_dim - STATE_DIM
+    obs = torch.zeros(3, STATE_DIM + pixels)
+    obs[:, STATE_DIM:] = 3.0 / c.DEPTH_MAX_M  # everything 3 m away
+    obs[1, STATE_DIM + 7] = 1.2 / c.DEPTH_MAX_M  # one pixel at 1.2 m
+    obs[2, STATE_DIM + 7] = 1.6 / c.DEPTH_MAX_M
+    obs[:, :STATE_DIM] = 0.01  # the state values are not depth
+    assert near_surface_states(obs, 1.5).tolist() == [False, True, False]
+    assert near_surface_states(obs, 2.0).tolist() == [False, True, True]
+
+
+def test_collect_weights_each_step_by_what_its_teacher_saw():
+    torch.manual_seed(4)
+    env = _env(Cmwae(make_config("tiny")).encoder, n=8)
+    teacher = ScriptedTeacher(env.config.privileged_obs_dim)
+    student = ActorCritic(PolicyConfig(mlp_sizes=(16,), gru_size=8))
+    seq, stats = collect(student, teacher, env, _carry(env, student, teacher), 24, 0.0, torch.Generator().manual_seed(0),
+                         near_weight=4.0, near_m=2.5)  # fmt: skip
+    near = torch.stack([near_surface_states(o, 2.5) for o in teacher.seen])  # [T, N] at the labelled step
+    assert 0 < int(near.sum()) < near.numel()  # both kinds of state occur
+    torch.testing.assert_close(seq.weights, 1.0 + 4.0 * near.float())
+    assert stats["near_share"] == pytest.approx(float(near.float().mean()))
+
+
+def test_weighted_distillation_fits_the_heavy_steps_closer():
+    """A student too small for its random labels: weighting half of the sequences 20x fits those closer
+    than the same run unweighted, and the others less close."""
+    torch.manual_seed(5)
+    steps, n = 8, 32
+    obs, labels = torch.randn(steps, n, 79), torch.rand(steps, n, 3) * 2 - 1
+    heavy = torch.zeros(steps, n, dtype=torch.bool)
+    heavy[:, : n // 2] = True
+    errors = {}
+    for weight in (1.0, 20.0):
+        torch.manual_seed(6)
+        student = ActorCritic(PolicyConfig(mlp_sizes=(8,), gru_size=4, obs_norm_max_count=0))
+        seq = Sequences(obs, torch.zeros(steps, n, dtype=torch.bool), labels, torch.zeros(n, 4), 1.0 + (weight - 1.0) * heavy.float())
+        optimizer = torch.optim.Adam(student.parameters(), lr=1e-2)
+        for _ in range(60):
+            distill(student, optimizer, [seq], 1, 1, 1.0, torch.Generator().manual_seed(0))
+        with torch.no_grad():
+            error = (student.unroll(obs, seq.hidden0, seq.starts)[0] - labels).pow(2).mean(dim=-1)
+        errors[weight] = (float(error[heavy].mean()), float(error[~heavy].mean()))
+    assert errors[20.0][0] < 0.8 * errors[1.0][0]
+    assert errors[20.0][1] > errors[1.0][1]
+
+
 def test_the_distilled_student_exports_and_the_runtime_loads_it(trained, tmp_path):
     out = tmp_path / "student"
     _cmnav("train", "policy", "--teacher", str(trained / "teacher"), "--encoder", str(trained / "enc"), "--out", str(out),
@@ -160,9 +207,10 @@ def test_the_distilled_student_exports_and_the_runtime_loads_it(trained, tmp_pat
     # resumed with another --lr: the student's optimizer takes it
     _cmnav("train", "policy", "--teacher", str(trained / "teacher"), "--encoder", str(trained / "enc"), "--out", str(out),
            "--size", "tiny", "--envs", "4", "--rollout", "8", "--minibatches", "2", "--steps", "96", "--precision", "fp32",
-           "--beta-decay-env-steps", "32", "--resume", "--lr", "1e-4")  # fmt: skip
+           "--beta-decay-env-steps", "32", "--resume", "--lr", "1e-4", "--min-level", "2", "--near-weight", "3")  # fmt: skip
     assert load_train_state(out)["optimizer"]["param_groups"][0]["lr"] == pytest.approx(1e-4)
     card = json.loads((out / "model.json").read_text())
+    assert card["meta"]["train"]["min_level"] == 2 and card["meta"]["train"]["near_weight"] == 3.0
     assert card["meta"]["role"] == "policy" and card["meta"]["algorithm"] == "dagger"
     assert card["meta"]["teacher_fingerprint"] and card["config"]["obs_dim"] == 79
     export_policy(trained / "enc", out, tmp_path / "student.onnx", random_samples=2)  # parity-checked inside

@@ -28,7 +28,7 @@ from sim.plot import opencv_for_drawing
 from ..data.tartanair import GrayDepthDataset
 from ..fastpath import choose_fast_path
 from ..vendored import import_vendored
-from .loss import near_surface_mask
+from .loss import NEAR_SURFACE_M, near_surface_mask
 from .train import load_cmwae
 
 ssim = import_vendored("pytorch_msssim").ssim
@@ -48,7 +48,7 @@ class CmwaeEvalConfig:
     coverages: tuple[float, ...] = EVALUATION_COVERAGES
     patch_sides_px: tuple[int, int] = EVALUATION_PATCH_SIDES_PX  # Table I's; e.g. (100, 100): S2's own squares
     precision: str = "auto"  # training.fastpath: the encoder under bf16 autocast where the CPU has it (decoder fp32)
-    near_m: float = 1.5  # the near-surface column: true depth below this (m), invalid pixels excluded
+    near_m: float = NEAR_SURFACE_M  # the near-surface column: true depth below this (m), invalid pixels excluded
 
 
 @torch.no_grad()

@@ -33,6 +33,12 @@ def mmd_imq(z: Tensor, prior_z: Tensor, sigma2: float = 1.0, scales: tuple[float
     return stat
 
 
+# The distance (m) under which a surface counts as near: what a crash is made of within a second
+# at the policy's speeds.  The encoder's near-weighted loss and eval column, and the student's
+# near-obstacle label weight use it.
+NEAR_SURFACE_M = 1.5
+
+
 def near_surface_mask(depth: Tensor, near_m: float) -> Tensor:
     """The valid pixels of normalised depth whose surface is nearer than ``near_m`` metres."""
     return (depth > DEPTH_INVALID_VALUE) & (depth < near_m / DEPTH_MAX_M)

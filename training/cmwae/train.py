@@ -25,7 +25,7 @@ from ..fastpath import PRECISIONS, FastPath, FrozenEncoder, choose_fast_path
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .curve import record_val_point
-from .loss import cmwae_loss, near_surface_mask
+from .loss import NEAR_SURFACE_M, cmwae_loss, near_surface_mask
 from .model import MODALITIES, Cmwae, CmwaeConfig, make_config
 
 log = logging.getLogger(__name__)
@@ -71,7 +71,7 @@ class CmwaeTrainConfig:
     # weight 1 + near_weight where the true surface is nearer than near_m (m).  A small near object
     # (a panel's edge) is what the vehicle hits, and the plain mean gives it almost no weight.
     near_weight: float = 0.0
-    near_m: float = 1.5
+    near_m: float = NEAR_SURFACE_M
     seed: int = 0
     device: str = "cpu"
     workers: int = 2

@@ -10,7 +10,9 @@ the student sees what the camera gives: gray + depth corrupted as the paper trai
 patches to 50 % in a random share of the envs each step, and projector-off episodes), through the
 frozen encoder.  Only the student learns: truncated back-propagation through time over each
 rollout's sequences, a mean-squared error to the teacher's clipped action, on the latest rollouts
-kept in a small aggregate buffer.
+kept in a small aggregate buffer.  With ``near_weight`` K the steps whose privileged depth holds a
+surface nearer than ``near_m`` weigh 1 + K in that error: the second before a crash is a few per
+cent of the states visited, and it is where a student's actions part from its teacher's.
 
 The student is exactly the network that ships (ActorCritic, 79 inputs, FC 256-128-64 ELU -> GRU
 64 -> FC 3, the normaliser inside); `cmnav export` exports it as any policy.  Its value head is
@@ -27,9 +29,11 @@ from pathlib import Path
 
 import torch
 from torch import Tensor
-from torch.nn import functional as F
+
+from runtime.contract.constants import DEPTH_MAX_M, STATE_DIM
 
 from ..checkpoint import checkpoint_fingerprint, load_train_state, save_train_state, save_weights
+from ..cmwae.loss import NEAR_SURFACE_M
 from ..cmwae.train import load_cmwae
 from ..distributed import DistInfo, log_weights_digest, wall_budget_spent
 from ..progress import Progress
@@ -65,6 +69,10 @@ class DaggerConfig:
     projector_off_episode_fraction: float = 0.15
     min_level: int = 0
     max_level: int = 20
+    # Extra weight of the steps whose teacher sees a surface nearer than near_m (m) in the
+    # imitation loss (0: every step alike).
+    near_weight: float = 0.0
+    near_m: float = NEAR_SURFACE_M
     device: str = "cpu"
     seed: int = 0
     precision: str = "auto"
@@ -92,6 +100,8 @@ class DaggerConfig:
         for key in ("env_steps", "num_envs", "rollout_steps", "buffer_rollouts", "epochs", "minibatches", "checkpoint_every"):
             if getattr(self, key) < 1:
                 raise ValueError(f"{key}={getattr(self, key)} must be >= 1")
+        if self.near_weight < 0.0 or not 0.0 < self.near_m <= DEPTH_MAX_M:
+            raise ValueError(f"need near_weight >= 0 (got {self.near_weight}) and near_m in (0, {DEPTH_MAX_M:g}] m (got {self.near_m})")
         if self.minibatches > self.num_envs * self.buffer_rollouts:
             raise ValueError(f"minibatches={self.minibatches} exceeds the buffer's {self.num_envs * self.buffer_rollouts} sequences")
         if self.policy.obs_dim != PolicyConfig().obs_dim:
@@ -112,14 +122,22 @@ class Sequences:
     starts: Tensor  # [T, N] bool: an episode begins at this step
     labels: Tensor  # [T, N, 3] the teacher's action, clipped to [-1, 1]
     hidden0: Tensor  # [N, H] the student's GRU state before step 0
+    weights: Tensor  # [T, N] each step's weight in the imitation loss
+
+
+def near_surface_states(teacher_obs: Tensor, near_m: float) -> Tensor:
+    """[N] bool: the teacher's clean depth (of [N, 15 + W*H], normalised by DEPTH_MAX_M) holds a
+    surface nearer than ``near_m`` metres."""
+    return teacher_obs[:, STATE_DIM:].amin(dim=-1) * DEPTH_MAX_M < near_m
 
 
 @torch.no_grad()
 def collect(student: ActorCritic, teacher: ActorCritic, env: NavEnv, carry: dict, steps: int, beta: float,
-            generator: torch.Generator) -> tuple[Sequences, dict]:  # fmt: skip
+            generator: torch.Generator, near_weight: float = 0.0, near_m: float = NEAR_SURFACE_M) -> tuple[Sequences, dict]:  # fmt: skip
     """Fly ``steps`` steps with the beta-mixture of teacher and student; label every visited state
-    with the teacher's action.  ``carry`` holds what continues between calls: obs, teacher_obs,
-    both GRU states, starts.  Returns the labelled sequences and episode counts."""
+    with the teacher's action, weighted 1 + ``near_weight`` at `near_surface_states`.  ``carry`` holds what continues between
+    calls: obs, teacher_obs, both GRU states, starts.  Returns the labelled sequences and episode
+    counts."""
     student.eval()
     obs, teacher_obs = carry["obs"], carry["teacher_obs"]
     h_student, h_teacher, starts = carry["h_student"], carry["h_teacher"], carry["starts"]
@@ -127,6 +145,7 @@ def collect(student: ActorCritic, teacher: ActorCritic, env: NavEnv, carry: dict
     buf_obs = torch.zeros(steps, n, obs.shape[-1], device=obs.device)
     buf_starts = torch.zeros(steps, n, dtype=torch.bool, device=obs.device)
     buf_labels = torch.zeros(steps, n, 3, device=obs.device)
+    buf_near = torch.zeros(steps, n, dtype=torch.bool, device=obs.device)
     hidden0 = torch.where(starts.unsqueeze(-1), torch.zeros_like(h_student), h_student)
     outcomes = {SUCCESS: 0, CRASH: 0, TIMEOUT: 0}
     teacher_steps = 0
@@ -141,6 +160,7 @@ def collect(student: ActorCritic, teacher: ActorCritic, env: NavEnv, carry: dict
         teacher_steps += int(by_teacher.sum())
         result = env.step(torch.where(by_teacher.unsqueeze(-1), label, student_action))
         buf_obs[t], buf_starts[t], buf_labels[t] = obs, starts, label
+        buf_near[t] = near_surface_states(teacher_obs, near_m)
         for code in outcomes:
             outcomes[code] += int((result.outcome[result.done] == code).sum())
         obs, teacher_obs, starts = result.obs, result.teacher_obs, result.done
@@ -149,18 +169,21 @@ def collect(student: ActorCritic, teacher: ActorCritic, env: NavEnv, carry: dict
     stats = {"finished": float(finished), "teacher_share": teacher_steps / (steps * n)}
     if finished:
         stats |= {"success_rate": outcomes[SUCCESS] / finished, "crash_rate": outcomes[CRASH] / finished}
-    return Sequences(buf_obs, buf_starts, buf_labels, hidden0), stats
+    stats["near_share"] = float(buf_near.float().mean())
+    return Sequences(buf_obs, buf_starts, buf_labels, hidden0, 1.0 + near_weight * buf_near.float()), stats
 
 
 def distill(student: ActorCritic, optimizer: torch.optim.Optimizer, buffer: list[Sequences], epochs: int,
             minibatches: int, max_grad_norm: float, generator: torch.Generator) -> float:  # fmt: skip
     """Fit the student to the teacher's labels on every sequence in ``buffer`` (truncated BPTT
-    over each rollout); returns the mean loss of the last pass."""
+    over each rollout), each step's squared error weighted by the sequences' weights; returns the
+    mean loss of the last pass."""
     student.train()
     obs = torch.cat([b.obs for b in buffer], dim=1)
     starts = torch.cat([b.starts for b in buffer], dim=1)
     labels = torch.cat([b.labels for b in buffer], dim=1)
     hidden0 = torch.cat([b.hidden0 for b in buffer], dim=0)
+    weights = torch.cat([b.weights for b in buffer], dim=1)
     sequences = obs.shape[1]
     losses: list[float] = []
     for _ in range(epochs):
@@ -168,7 +191,8 @@ def distill(student: ActorCritic, optimizer: torch.optim.Optimizer, buffer: list
         order = torch.randperm(sequences, generator=generator).to(obs.device)
         for chunk in order.chunk(minibatches):
             mean, _ = student.unroll(obs[:, chunk], hidden0[chunk], starts[:, chunk])
-            loss = F.mse_loss(mean, labels[:, chunk])
+            w = weights[:, chunk]
+            loss = ((mean - labels[:, chunk]).pow(2).mean(dim=-1) * w).sum() / w.sum()
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(student.parameters(), max_grad_norm)
@@ -259,7 +283,8 @@ def train_dagger(config: DaggerConfig) -> Path:
     while iteration < total_iterations:
         t_iter = time.monotonic()
         beta = config.beta(env_steps)
-        sequences, stats = collect(student, teacher, env, carry, config.rollout_steps, beta, generator)
+        sequences, stats = collect(student, teacher, env, carry, config.rollout_steps, beta, generator, config.near_weight,
+                                   config.near_m)  # fmt: skip
         buffer.append(sequences)
         loss = distill(student, optimizer, list(buffer), config.epochs, config.minibatches, config.max_grad_norm, generator)
         iteration += 1

@@ -171,8 +171,8 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
     model_config = make_config(config.size, config.modalities)
     path = choose_fast_path(config.precision, device)
     model = path.prepare_trained(Cmwae(model_config).to(device))
-    anchor = _anchor_encoder(config, model_config, path, device)
-    if anchor is not None:
+    anchor_net, anchor_card = _read_anchor(config, model_config)
+    if anchor_net is not None:
         model.decoder.requires_grad_(False)
     optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=config.lr)
     corruption_generator = torch.Generator().manual_seed(config.seed * 1000 + info.rank)
@@ -185,10 +185,14 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
         step, epoch = state["step"], state["epoch"]
         corruption_generator.set_state(state["corruption_rng"])
         log.info("resumed %s at step %d", out, step)
-    elif (init_from := config.init_from or config.anchor_from) is not None:
-        init_card = _read_matching_card(init_from, model_config, config)
-        load_weights(init_from, model)
-        log.info("initialised from %s (step %s)", init_from, init_card.get("step"))
+    elif config.init_from is not None:
+        init_card = _read_matching_card(config.init_from, model_config, config)
+        load_weights(config.init_from, model)
+        log.info("initialised from %s (step %s)", config.init_from, init_card.get("step"))
+    elif anchor_net is not None:
+        model.load_state_dict(anchor_net.state_dict())
+        log.info("initialised from the anchor %s (step %s)", config.anchor_from, anchor_card.get("step"))
+    anchor = None if anchor_net is None else FrozenEncoder(anchor_net.encoder.to(device), path)
     if config.resume and state is None:
         log.warning("--resume: no training state in %s, starting %s", out,
                     "from scratch" if config.init_from is None else f"from {config.init_from}")  # fmt: skip
@@ -283,15 +287,15 @@ def _read_matching_card(ckpt_dir: str, model_config: CmwaeConfig, config: CmwaeT
     return card
 
 
-def _anchor_encoder(config: CmwaeTrainConfig, model_config: CmwaeConfig, path: FastPath,
-                    device: torch.device) -> FrozenEncoder | None:  # fmt: skip
-    """The anchor's frozen encoder on the fast path, or None without --anchor."""
+def _read_anchor(config: CmwaeTrainConfig, model_config: CmwaeConfig) -> tuple[Cmwae | None, dict]:
+    """The --anchor checkpoint (read once: the trained model starts from its weights, its encoder
+    becomes the frozen anchor) and its card; (None, {}) without --anchor."""
     if config.anchor_from is None:
-        return None
-    _read_matching_card(config.anchor_from, model_config, config)
+        return None, {}
+    card = _read_matching_card(config.anchor_from, model_config, config)
     anchor = Cmwae(model_config)
     load_weights(config.anchor_from, anchor)
-    return FrozenEncoder(anchor.encoder.to(device), path)
+    return anchor, card
 
 
 def _config_from_card(card: dict) -> CmwaeConfig:

@@ -445,6 +445,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --policy: flights flown at once")  # fmt: skip
     dataset.set_defaults(func=_cmd_dataset)
 
+    def add_near_options(command: argparse.ArgumentParser, config: str, weighted: str, prefix: str = "") -> None:
+        """--near-weight / --near-m of ``config`` ("module:Class"): the extra weight of ``weighted``."""
+        _config_option(command, "--near-weight", f"{config}.near_weight", type=float, help=f"{prefix}extra weight of {weighted}")
+        _config_option(command, "--near-m", f"{config}.near_m", type=float, help=f"{prefix}distance (m) under which --near-weight applies")
+
     def add_precision(command: argparse.ArgumentParser) -> None:
         command.add_argument("--precision", choices=["auto", "fp32", "bf16"],
                              help="torch compute precision on the CPU (default auto: bf16 + channels_last where the CPU has "
@@ -497,11 +502,9 @@ def build_parser() -> argparse.ArgumentParser:
     _config_option(cmwae, "--consistency-weight", "training.cmwae.train:CmwaeTrainConfig.consistency_weight", type=float,
                    help="fine-tuning encoder and decoder (--init-from, no --anchor): weight of the pull of each corrupted "
                    "image's latent toward this encoder's own latent of the same pair with clean depth")  # fmt: skip
-    _config_option(cmwae, "--near-weight", "training.cmwae.train:CmwaeTrainConfig.near_weight", type=float,
-                   help="extra weight of the pixels whose true surface is nearer than --near-m in each image's "
-                        "reconstruction error (0: the paper's plain mean)")  # fmt: skip
-    _config_option(cmwae, "--near-m", "training.cmwae.train:CmwaeTrainConfig.near_m", type=float,
-                   help="distance (m) under which --near-weight applies")
+    add_near_options(cmwae, "training.cmwae.train:CmwaeTrainConfig",
+                     "the pixels whose true surface is nearer than --near-m in each image's reconstruction error "
+                     "(0: the paper's plain mean)")  # fmt: skip
     add_precision(cmwae)
     cmwae.set_defaults(func=_cmd_train_cmwae)
 
@@ -569,11 +572,9 @@ def build_parser() -> argparse.ArgumentParser:
     _config_option(policy, "--min-level", "training.policy.dagger:DaggerConfig.min_level", type=int,
                    help="DAgger: the lowest obstacle level; each episode's level is drawn uniformly from "
                    "[--min-level, --max-level]")  # fmt: skip
-    _config_option(policy, "--near-weight", "training.policy.dagger:DaggerConfig.near_weight", type=float,
-                   help="DAgger: extra weight, in the imitation loss, of the steps whose teacher sees a surface nearer "
-                   "than --near-m (0: every step alike)")  # fmt: skip
-    _config_option(policy, "--near-m", "training.policy.dagger:DaggerConfig.near_m", type=float,
-                   help="DAgger: distance (m) under which --near-weight applies")
+    add_near_options(policy, "training.policy.dagger:DaggerConfig",
+                     "the steps whose teacher sees a surface nearer than --near-m, in the imitation loss (0: every "
+                     "step alike)", prefix="DAgger: ")  # fmt: skip
     add_precision(policy)
     policy.set_defaults(func=_cmd_train_policy)
 

@@ -135,9 +135,9 @@ def near_surface_states(teacher_obs: Tensor, near_m: float) -> Tensor:
 def collect(student: ActorCritic, teacher: ActorCritic, env: NavEnv, carry: dict, steps: int, beta: float,
             generator: torch.Generator, near_weight: float = 0.0, near_m: float = NEAR_SURFACE_M) -> tuple[Sequences, dict]:  # fmt: skip
     """Fly ``steps`` steps with the beta-mixture of teacher and student; label every visited state
-    with the teacher's action, weighted 1 + ``near_weight`` at `near_surface_states`.  ``carry`` holds what continues between
-    calls: obs, teacher_obs, both GRU states, starts.  Returns the labelled sequences and episode
-    counts."""
+    with the teacher's action, weighted 1 + ``near_weight`` at `near_surface_states`.  ``carry``
+    holds what continues between calls: obs, teacher_obs, both GRU states, starts.  Returns the
+    labelled sequences and episode counts."""
     student.eval()
     obs, teacher_obs = carry["obs"], carry["teacher_obs"]
     h_student, h_teacher, starts = carry["h_student"], carry["h_teacher"], carry["starts"]

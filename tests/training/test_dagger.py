@@ -160,6 +160,10 @@ def test_near_surface_states_are_those_whose_teacher_sees_a_surface_nearer_than_
     obs[:, :STATE_DIM] = 0.01  # the state values are not depth
     assert near_surface_states(obs, 1.5).tolist() == [False, True, False]
     assert near_surface_states(obs, 2.0).tolist() == [False, True, True]
+    with pytest.raises(ValueError, match="near_m=12.0 must lie in"):  # the encoder's check, shared
+        DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", near_m=12.0).validate()
+    with pytest.raises(ValueError, match="near_weight=-1.0 must lie in"):
+        DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", near_weight=-1.0).validate()
 
 
 def test_collect_weights_each_step_by_what_its_teacher_saw():

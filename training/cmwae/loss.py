@@ -39,6 +39,14 @@ def mmd_imq(z: Tensor, prior_z: Tensor, sigma2: float = 1.0, scales: tuple[float
 NEAR_SURFACE_M = 1.5
 
 
+def check_near_weighting(near_weight: float, near_m: float) -> None:
+    """The configured near weighting (the encoder's loss, DAgger's labels) is usable: ValueError if not."""
+    if not 0.0 <= near_weight <= 1000.0:
+        raise ValueError(f"near_weight={near_weight} must lie in [0, 1000]")
+    if not 0.0 < near_m <= DEPTH_MAX_M:
+        raise ValueError(f"near_m={near_m} must lie in (0, {DEPTH_MAX_M:g}] m, the depth range")
+
+
 def near_surface_mask(depth: Tensor, near_m: float) -> Tensor:
     """The valid pixels of normalised depth whose surface is nearer than ``near_m`` metres."""
     return (depth > DEPTH_INVALID_VALUE) & (depth < near_m / DEPTH_MAX_M)

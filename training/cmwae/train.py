@@ -15,7 +15,6 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import ConcatDataset, DataLoader
 from torch.utils.data.distributed import DistributedSampler
 
-from runtime.contract.constants import DEPTH_MAX_M
 from sim.degradation import SCHEMES, corrupt_depth, corrupt_with_scheme, evaluation_scheme, patch_masks
 
 from ..checkpoint import load_train_state, load_weights, read_card, save_train_state, save_weights
@@ -25,7 +24,7 @@ from ..fastpath import PRECISIONS, FastPath, FrozenEncoder, choose_fast_path
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .curve import record_val_point
-from .loss import NEAR_SURFACE_M, cmwae_loss, near_surface_mask
+from .loss import NEAR_SURFACE_M, check_near_weighting, cmwae_loss, near_surface_mask
 from .model import MODALITIES, Cmwae, CmwaeConfig, make_config
 
 log = logging.getLogger(__name__)
@@ -99,10 +98,7 @@ class CmwaeTrainConfig:
             raise ValueError(f"anchor_weight={self.anchor_weight} must lie in (0, 1000]")
         if not 0.0 <= self.consistency_weight <= 1000.0:
             raise ValueError(f"consistency_weight={self.consistency_weight} must lie in [0, 1000]")
-        if not 0.0 <= self.near_weight <= 1000.0:
-            raise ValueError(f"near_weight={self.near_weight} must lie in [0, 1000]")
-        if not 0.0 < self.near_m <= DEPTH_MAX_M:
-            raise ValueError(f"near_m={self.near_m} must lie in (0, {DEPTH_MAX_M:g}] m, the depth range")
+        check_near_weighting(self.near_weight, self.near_m)
         if self.consistency_weight > 0.0 and self.anchor_from is not None:
             raise ValueError("consistency_weight and anchor_from both pull the corrupted latent: anchoring toward the "
                              "anchor's clean latent, consistency toward this encoder's own; give one")  # fmt: skip

@@ -30,10 +30,10 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from runtime.contract.constants import DEPTH_MAX_M, STATE_DIM
+from runtime.contract.constants import STATE_DIM
 
 from ..checkpoint import checkpoint_fingerprint, load_train_state, save_train_state, save_weights
-from ..cmwae.loss import NEAR_SURFACE_M
+from ..cmwae.loss import NEAR_SURFACE_M, check_near_weighting, near_surface_mask
 from ..cmwae.train import load_cmwae
 from ..distributed import DistInfo, log_weights_digest, wall_budget_spent
 from ..progress import Progress
@@ -100,8 +100,7 @@ class DaggerConfig:
         for key in ("env_steps", "num_envs", "rollout_steps", "buffer_rollouts", "epochs", "minibatches", "checkpoint_every"):
             if getattr(self, key) < 1:
                 raise ValueError(f"{key}={getattr(self, key)} must be >= 1")
-        if self.near_weight < 0.0 or not 0.0 < self.near_m <= DEPTH_MAX_M:
-            raise ValueError(f"need near_weight >= 0 (got {self.near_weight}) and near_m in (0, {DEPTH_MAX_M:g}] m (got {self.near_m})")
+        check_near_weighting(self.near_weight, self.near_m)
         if self.minibatches > self.num_envs * self.buffer_rollouts:
             raise ValueError(f"minibatches={self.minibatches} exceeds the buffer's {self.num_envs * self.buffer_rollouts} sequences")
         if self.policy.obs_dim != PolicyConfig().obs_dim:
@@ -127,8 +126,8 @@ class Sequences:
 
 def near_surface_states(teacher_obs: Tensor, near_m: float) -> Tensor:
     """[N] bool: the teacher's clean depth (of [N, 15 + W*H], normalised by DEPTH_MAX_M) holds a
-    surface nearer than ``near_m`` metres."""
-    return teacher_obs[:, STATE_DIM:].amin(dim=-1) * DEPTH_MAX_M < near_m
+    surface nearer than ``near_m`` metres (`near_surface_mask`, the encoder's rule)."""
+    return near_surface_mask(teacher_obs[:, STATE_DIM:], near_m).any(dim=-1)
 
 
 @torch.no_grad()

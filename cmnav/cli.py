@@ -210,9 +210,9 @@ def _train_student(args: argparse.Namespace) -> int:
         teacher_dir=args.teacher, encoder_dir=args.encoder, out_dir=args.out,
         policy=POLICY_SIZES[args.size], resume=args.resume, init_from=args.init_from,
         max_wall_s=None if args.minutes is None else args.minutes * 60.0,
-        **_given(args, "device", "seed", "corruption", "minibatches", "max_level", "checkpoint_every", "precision", "lr",
-                 "beta_start", "beta_decay_env_steps", "projector_off_episode_fraction", "min_level", "near_weight", "near_m", num_envs="envs", rollout_steps="rollout",
-                 env_steps="steps"),
+        **_given(args, "device", "seed", "corruption", "minibatches", "min_level", "max_level", "checkpoint_every", "precision",
+                 "lr", "beta_start", "beta_decay_env_steps", "projector_off_episode_fraction", "near_weight", "near_m",
+                 num_envs="envs", rollout_steps="rollout", env_steps="steps"),
     )  # fmt: skip
     out = train_dagger(config)
     print(f"student checkpoint in {out}")

@@ -169,7 +169,8 @@ def _cmd_train_cmwae(args: argparse.Namespace) -> int:
         lr_final=args.lr_final, resume=args.resume, max_wall_s=None if args.minutes is None else args.minutes * 60.0,
         init_from=args.init_from, anchor_from=args.anchor,
         **_given(args, "scheme", "modalities", "size", "batch_size", "lr", "mmd_weight", "seed", "device", "workers",
-                 "checkpoint_every", "precision", "corrupted_loss_weight", "anchor_weight", "consistency_weight", "near_weight", "near_m", "val_images"),
+                 "checkpoint_every", "precision", "corrupted_loss_weight", "anchor_weight", "consistency_weight", "near_weight", "near_m", "pooled_weight",
+                 "val_images"),
     )  # fmt: skip
     out = train_cmwae(config)
     print(f"checkpoint in {out}")
@@ -505,6 +506,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_near_options(cmwae, "training.cmwae.train:CmwaeTrainConfig",
                      "the pixels whose true surface is nearer than --near-m in each image's reconstruction error "
                      "(0: the paper's plain mean)")  # fmt: skip
+    _config_option(cmwae, "--pooled-weight", "training.cmwae.train:CmwaeTrainConfig.pooled_weight", type=float,
+                   help="weight of the teacher's-view term: the error of the nearest surface per cell of the teacher's "
+                   "18 x 32 depth grid, near cells weighted by --near-weight (0: off)")  # fmt: skip
     add_precision(cmwae)
     cmwae.set_defaults(func=_cmd_train_cmwae)
 

@@ -8,7 +8,8 @@ own GRU state carried), and the encoder's decoder reconstructs the depth the stu
 holds.  Per level it prints, for the steps of successful episodes and for the last second (15
 steps) before each crash: the student's squared action error against the teacher, the
 reconstruction's MSE against the clean depth over the whole frame and over the pixels nearer than
---near-m (the surfaces a crash is made of), and the share of such pixels.  A high action error
+--near-m (the surfaces a crash is made of) and in the teacher's view (the nearest surface per cell
+of its 18 x 32 grid), and the share of near pixels.  A high action error
 with a good reconstruction points at the imitation; reconstruction errors that grow near
 obstacles point at the encoder.
 """
@@ -21,14 +22,14 @@ import json
 import torch
 from torch import nn
 
-from runtime.contract.constants import CONTROL_PERIOD_S, DEPTH_MAX_M, STATE_DIM
-from training.cmwae.loss import NEAR_SURFACE_M
+from runtime.contract.constants import CONTROL_PERIOD_S, STATE_DIM
+from training.cmwae.loss import NEAR_SURFACE_M, near_surface_mask, pooled_nearest_error
 from training.cmwae.train import load_cmwae
 from training.policy.env import CRASH, SUCCESS
 from training.policy.evaluate import table2_env
 from training.policy.network import load_policy
 
-METRICS = ("action_mse", "recon_mse", "recon_mse_near", "near_share")
+METRICS = ("action_mse", "recon_mse", "recon_mse_near", "recon_mse_teacher_view", "near_share")
 PHASES = {SUCCESS: "successful episodes", CRASH: "last 1 s before a crash"}
 
 
@@ -51,7 +52,6 @@ def measure(args: argparse.Namespace) -> dict:
     teacher, _ = load_policy(args.teacher, "cpu")
     cmwae, _ = load_cmwae(args.encoder, "cpu")
     tap = Tap(cmwae.encoder)
-    near = args.near_m / DEPTH_MAX_M
     window = round(1.0 / CONTROL_PERIOD_S)  # the last second before a crash
     result = {}
     for level in args.levels:
@@ -62,8 +62,9 @@ def measure(args: argparse.Namespace) -> dict:
         active, metrics = [], []  # per step: [n] bool, [n, len(METRICS)]
         outcome = torch.zeros(n, dtype=torch.long)
         while bool(env.active.any()):
-            squared = (cmwae.decoder(obs[:, STATE_DIM:]) - tap.depth) ** 2
-            close = tap.depth < near
+            recon = cmwae.decoder(obs[:, STATE_DIM:])
+            squared = (recon - tap.depth) ** 2
+            close = near_surface_mask(tap.depth, args.near_m)
             action, _, h_student = student.step(obs, h_student)
             label, _, h_teacher = teacher.step(teacher_obs, h_teacher)
             active.append(env.active.clone())
@@ -71,6 +72,7 @@ def measure(args: argparse.Namespace) -> dict:
                 ((action.clamp(-1, 1) - label.clamp(-1, 1)) ** 2).mean(-1),
                 squared.mean(dim=(1, 2, 3)),
                 (squared * close).sum(dim=(1, 2, 3)) / close.sum(dim=(1, 2, 3)).clamp(min=1),
+                pooled_nearest_error(recon, tap.depth),
                 close.float().mean(dim=(1, 2, 3)),
             ], dim=-1))  # fmt: skip
             step = env.step(action)
@@ -103,14 +105,15 @@ def main() -> None:
     parser.add_argument("--seed", default=0, type=int)
     args = parser.parse_args()
     result = measure(args)
-    print("| level | phase | steps | action MSE vs teacher | recon MSE x1e-3 | recon MSE near x1e-3 | near pixels % |")
-    print("|---|---|---|---|---|---|---|")
+    print("| level | phase | steps | action MSE vs teacher | recon MSE x1e-3 | recon MSE near x1e-3 | "
+          "recon MSE teacher's view x1e-3 | near pixels % |")
+    print("|---|---|---|---|---|---|---|---|")
     for level, r in result.items():
         for phase in PHASES.values():
             if phase in r:
                 p = r[phase]
                 print(f"| {level} | {phase} | {p['steps']} | {p['action_mse']:.4f} | {1e3 * p['recon_mse']:.2f} | "
-                      f"{1e3 * p['recon_mse_near']:.2f} | {100 * p['near_share']:.1f} |")  # fmt: skip
+                      f"{1e3 * p['recon_mse_near']:.2f} | {1e3 * p['recon_mse_teacher_view']:.2f} | {100 * p['near_share']:.1f} |")  # fmt: skip
     print(json.dumps(result))
 
 

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from training.checkpoint import MAX_SHARD_BYTES, load_train_state, read_card, save_weights
-from training.cmwae.loss import cmwae_loss, near_surface_mask
+from training.cmwae.loss import TEACHER_GRID, cmwae_loss, near_surface_mask, nearest_per_cell, pooled_nearest_error
 from training.cmwae.model import Cmwae, make_config
 from training.cmwae.train import CmwaeTrainConfig, learning_rate, load_cmwae
 from sim.degradation import SCHEMES, PatchScheme, corrupt_depth, corrupt_with_scheme, patch_masks
@@ -80,6 +80,8 @@ def test_train_checkpoint_resume_and_eval(dataset, tmp_path):
     # the latent shift: none without corruption, some at 50 %
     assert result["rows"][0]["latent_shift_over_var"] == 0.0 and result["rows"][4]["latent_shift_over_var"] > 0.0
     assert result["latent_var"] > 0.0 and "latent shift / var" in result["table"]
+    # the teacher's-view column: nearest surface per cell of the 18 x 32 grid, coarser than the frame
+    assert all(0 < r["teacher_view_mse_e3"] for r in result["rows"]) and "teacher's view MSE" in result["table"]
 
     # S2's own 100 px squares instead of Table I's 1-50 px patches: other masks, same coverages.
     stdout = _cmnav("eval", "cmwae", "--checkpoint", str(out), "--data", str(dataset), "--max-images", "3",
@@ -223,6 +225,62 @@ def test_near_surface_weighting_is_a_weighted_mean_over_each_images_pixels():
     assert float(losses["recon_mse"]) == pytest.approx(((2 * 0.3**2 + 14 * 0.1**2) / 16 + 0.1**2) / 2, rel=1e-5)
     with pytest.raises(ValueError, match="near_m=12.0 must lie in"):
         CmwaeTrainConfig(data_dir="d", out_dir="o", steps=1, near_weight=1.0, near_m=12.0).validate()
+
+
+def test_the_pooled_loss_sees_the_depth_as_the_teacher_does():
+    from training.policy.env import NavEnvConfig
+
+    width, height = NavEnvConfig().privileged_depth_px
+    assert TEACHER_GRID == (height, width)  # rows x columns of the teacher's privileged depth
+    far = torch.full((1, 1, 224, 224), 0.8)  # the contract's image: cells of 7 columns x 12.4 rows
+    pole = far.clone()
+    pole[0, 0, :, 35] = 0.1  # a pole one pixel wide at 1 m, in grid column 5 (px 35-41)
+    pole[0, 0, 0, :] = 0.0  # an invalid row reads far, not as a surface at 0 m
+    cells = nearest_per_cell(pole)
+    assert cells.shape == (1, 1, *TEACHER_GRID)
+    assert torch.allclose(cells[0, 0, :, 5], torch.full((18,), 0.1)) and float(cells[0, 0, :, 6:].min()) == pytest.approx(0.8)
+    # the pole missing from the reconstruction: the frame's MSE barely sees it, the teacher's view does
+    frame_mse = float(((far - pole)[pole > 0] ** 2).mean())
+    missed = float(pooled_nearest_error(far, pole)[0])
+    assert missed == pytest.approx(0.7**2 / 32, rel=1e-5) and missed > 6 * frame_mse
+    # shifted by a pixel inside its cell it is what the teacher sees; the invalid row is not scored
+    shifted = far.clone()
+    shifted[0, 0, :, 36] = 0.1
+    shifted[0, 0, 0, :] = 0.3
+    assert float(pooled_nearest_error(shifted, pole)[0]) == 0.0
+    # near cells (the pole's, at 1 m < 1.5 m) weigh 1 + near_weight
+    assert float(pooled_nearest_error(far, pole, near_weight=9.0)[0]) == pytest.approx(18 * 10 * 0.7**2 / (18 * 10 + 558), rel=1e-5)
+    with pytest.raises(ValueError, match="pooled_weight=-1.0 must lie in"):
+        CmwaeTrainConfig(data_dir="d", out_dir="o", steps=1, pooled_weight=-1.0).validate()
+
+
+def test_the_pooled_term_pulls_the_reconstruction_toward_the_teachers_view():
+    # plain gradient steps on a free image: the frame's mean spreads a thin pole's error over every
+    # pixel, the teacher's-view term puts it on one cell; the pole comes back only with the term
+    target = torch.full((1, 1, 224, 224), 0.8)
+    target[0, 0, :, 35] = target[0, 0, :, 120] = 0.1
+    errors = {}
+    for pooled_weight in (0.0, 30.0):
+        recon = torch.full_like(target, 0.8).requires_grad_(True)
+        for _ in range(20):
+            loss = ((recon - target) ** 2).mean() + pooled_weight * pooled_nearest_error(recon, target).mean()
+            (grad,) = torch.autograd.grad(loss, recon)
+            recon = (recon - 5.0 * grad).detach().requires_grad_(True)
+        errors[pooled_weight] = float(pooled_nearest_error(recon.detach(), target)[0])
+    assert errors[0.0] > 0.9 * pooled_nearest_error(torch.full_like(target, 0.8), target)[0] and errors[30.0] < 0.01 * errors[0.0], errors
+
+
+def test_train_cmwae_with_the_pooled_term(dataset, tmp_path):
+    weights = {}
+    for pooled_weight in ("0", "30"):
+        out = tmp_path / f"pooled{pooled_weight}"
+        _cmnav(*TRAIN, "--data", str(dataset), "--scheme", "none", "--out", str(out), "--steps", "3", "--seed", "1",
+               "--pooled-weight", pooled_weight, "--precision", "fp32", "--val-images", "4")
+        model, card = load_cmwae(out)
+        assert card["meta"]["train"]["pooled_weight"] == float(pooled_weight)
+        weights[pooled_weight] = model.state_dict()
+    # the same seed, batches and start: the term reached the gradient
+    assert any(not torch.allclose(weights["0"][k], weights["30"][k]) for k in weights["0"])
 
 
 def test_near_surface_weighting_lowers_the_near_error_more_than_the_plain_mean(dataset, tmp_path):

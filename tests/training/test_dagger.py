@@ -253,7 +253,7 @@ def test_the_distilled_student_exports_and_the_runtime_loads_it(trained, tmp_pat
     for phase in phases:
         m = gap[phase]
         assert m["steps"] >= 1 and 0.0 <= m["near_share"] <= 1.0
-        assert all(np.isfinite(m[k]) and m[k] >= 0.0 for k in ("action_mse", "recon_mse", "recon_mse_near"))
+        assert all(np.isfinite(m[k]) and m[k] >= 0.0 for k in ("action_mse", "recon_mse", "recon_mse_near", "recon_mse_teacher_view"))
         assert m["action_mse"] <= 4.0  # both actions lie in [-1, 1]
 
 

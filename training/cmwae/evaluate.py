@@ -3,7 +3,9 @@
 encoder copes with S2's 100 px squares or the policy's 1..30 px patches), as a markdown table like
 the paper's, plus MSE/SSIM box plots and a grid of example inputs and reconstructions.  A column the
 paper has not: the MSE over the surfaces nearer than ``near_m`` (per image that has any, then
-averaged), the obstacles a policy is about to hit, which the whole-frame mean dilutes; and the
+averaged), the obstacles a policy is about to hit, which the whole-frame mean dilutes; the
+teacher's-view MSE, the error of the nearest surface per cell of the teacher's 18 x 32 depth grid
+(what the privileged teacher flies on, so what the student's latent has to carry); and the
 latent shift, what the policy sees of the corruption: the mean squared distance per dimension of
 the latent of corrupted depth from the latent of the same pair with clean depth, over the clean
 latents' variance per dimension (0: corruption leaves the latent where it was).
@@ -28,7 +30,7 @@ from sim.plot import opencv_for_drawing
 from ..data.tartanair import GrayDepthDataset
 from ..fastpath import choose_fast_path
 from ..vendored import import_vendored
-from .loss import NEAR_SURFACE_M, near_surface_mask
+from .loss import NEAR_SURFACE_M, near_surface_mask, pooled_nearest_error
 from .train import load_cmwae
 
 ssim = import_vendored("pytorch_msssim").ssim
@@ -64,7 +66,7 @@ def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
     clean_latents: list[torch.Tensor] = []  # per batch, from the first coverage's pass
     for coverage in config.coverages:
         generator = torch.Generator().manual_seed(config.seed)  # same patches for every model
-        mse, sim, actual, near_mse, near_share, latent_shift = [], [], [], [], [], []
+        mse, sim, actual, near_mse, near_share, pooled_mse, latent_shift = [], [], [], [], [], [], []
         seen = 0
         for batch, (gray, depth) in enumerate(loader):
             if config.max_images is not None:
@@ -87,13 +89,14 @@ def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
             near_share += (near_count / near[0].numel()).tolist()
             near_mse += [v for v, k in zip(((squared * near).sum(dim=(1, 2, 3)) / near_count.clamp(min=1)).tolist(),
                                            near_count.tolist()) if k > 0]  # fmt: skip
+            pooled_mse += pooled_nearest_error(recon, depth).tolist()
             sim += ssim(recon, depth, data_range=1.0, size_average=False).tolist()
             actual += masks.float().mean(dim=(1, 2)).tolist()
             if coverage not in examples:
                 examples[coverage] = (gray[:4], corrupted[:4], recon[:4], depth[:4])
             seen += depth.shape[0]
         per_coverage[coverage] = {"mse": mse, "ssim": sim, "coverage": actual, "near_mse": near_mse, "near_share": near_share,
-                                  "latent_shift": latent_shift}  # fmt: skip
+                                  "pooled_mse": pooled_mse, "latent_shift": latent_shift}  # fmt: skip
     latent_var = float(torch.cat(clean_latents).var(dim=0).mean())
     rows = [
         {
@@ -104,6 +107,7 @@ def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
             "near_mse_e3": round(1e3 * float(np.mean(v["near_mse"])), 3) if v["near_mse"] else None,
             "near_images": len(v["near_mse"]),
             "near_pixels_pct": round(100 * float(np.mean(v["near_share"])), 2),
+            "teacher_view_mse_e3": round(1e3 * float(np.mean(v["pooled_mse"])), 3),
             "latent_shift_over_var": float(f"{float(np.mean(v['latent_shift'])) / max(latent_var, 1e-12):.4g}"),
             "images": len(v["mse"]),
         }
@@ -143,10 +147,11 @@ def _ratio(rows: list[dict]) -> float | None:
 
 
 def markdown_table(rows: list[dict], near_m: float) -> str:
-    lines = [f"| corruption | MSE (x10^-3) | SSIM (x10^-2) | MSE < {near_m:g} m (x10^-3) | latent shift / var | "
-             "images (with near pixels) |", "|---|---|---|---|---|---|"]  # fmt: skip
+    lines = [f"| corruption | MSE (x10^-3) | SSIM (x10^-2) | MSE < {near_m:g} m (x10^-3) | teacher's view MSE (x10^-3) | "
+             "latent shift / var | images (with near pixels) |", "|---|---|---|---|---|---|---|"]  # fmt: skip
     lines += [f"| {r['corruption_pct']}% | {r['mse_e3']:.2f} | {r['ssim_e2']:.2f} | "
-              f"{'-' if r['near_mse_e3'] is None else format(r['near_mse_e3'], '.2f')} | {r['latent_shift_over_var']:.3f} | "
+              f"{'-' if r['near_mse_e3'] is None else format(r['near_mse_e3'], '.2f')} | {r['teacher_view_mse_e3']:.2f} | "
+              f"{r['latent_shift_over_var']:.3f} | "
               f"{r['images']} ({r['near_images']}) |" for r in rows]  # fmt: skip
     return "\n".join(lines)
 

@@ -4,6 +4,7 @@ kernel, and the CMWAE objective L = E||D(z) - depth||^2 + lambda * MMD(q(z), N(0
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from runtime.contract.constants import DEPTH_INVALID_VALUE, DEPTH_MAX_M
@@ -50,6 +51,34 @@ def check_near_weighting(near_weight: float, near_m: float) -> None:
 def near_surface_mask(depth: Tensor, near_m: float) -> Tensor:
     """The valid pixels of normalised depth whose surface is nearer than ``near_m`` metres."""
     return (depth > DEPTH_INVALID_VALUE) & (depth < near_m / DEPTH_MAX_M)
+
+
+# The teacher's view of the depth image (training.policy.env, NavEnvConfig's privileged depth): the
+# nearest surface in each cell of an 18 x 32 (rows x columns) grid over the camera's field of view.
+# The pooled reconstruction loss holds the latent to what the teacher flies on; a test keeps the
+# two grids equal.
+TEACHER_GRID = (18, 32)
+
+
+def nearest_per_cell(depth: Tensor, grid: tuple[int, int] = TEACHER_GRID) -> Tensor:
+    """[B, 1, H, W] normalised depth -> [B, 1, rows, cols]: the nearest valid surface in each cell of
+    ``grid`` (adaptive cells, so any H, W); an invalid pixel counts as far (1), a cell with no valid
+    pixel reads 1, as the teacher's closed-room depth reads past DEPTH_MAX_M."""
+    far = torch.where(depth > DEPTH_INVALID_VALUE, depth, torch.ones_like(depth))
+    return -F.adaptive_max_pool2d(-far, grid)
+
+
+def pooled_nearest_error(recon: Tensor, target: Tensor, near_weight: float = 0.0, near_m: float = NEAR_SURFACE_M,
+                         grid: tuple[int, int] = TEACHER_GRID) -> Tensor:  # fmt: skip
+    """[B] the reconstruction error as the teacher would see it: squared error of the nearest
+    surface per grid cell, the reconstruction read only where the target is valid, cells whose true
+    nearest surface is nearer than ``near_m`` weighing 1 + ``near_weight``; a weighted mean per image."""
+    valid = target > DEPTH_INVALID_VALUE
+    cells_true = nearest_per_cell(target, grid)
+    cells_recon = nearest_per_cell(torch.where(valid, recon, torch.ones_like(recon)), grid)
+    weights = 1.0 + near_weight * near_surface_mask(cells_true, near_m)
+    squared = (cells_recon - cells_true) ** 2
+    return (squared * weights).flatten(1).sum(dim=1) / weights.flatten(1).sum(dim=1)
 
 
 def cmwae_loss(recon: Tensor, target: Tensor, z: Tensor, mmd_weight: float, generator: torch.Generator | None = None,

@@ -24,7 +24,7 @@ from ..fastpath import PRECISIONS, FastPath, FrozenEncoder, choose_fast_path
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .curve import record_val_point
-from .loss import NEAR_SURFACE_M, check_near_weighting, cmwae_loss, near_surface_mask
+from .loss import NEAR_SURFACE_M, check_near_weighting, cmwae_loss, near_surface_mask, pooled_nearest_error
 from .model import MODALITIES, Cmwae, CmwaeConfig, make_config
 
 log = logging.getLogger(__name__)
@@ -71,6 +71,10 @@ class CmwaeTrainConfig:
     # (a panel's edge) is what the vehicle hits, and the plain mean gives it almost no weight.
     near_weight: float = 0.0
     near_m: float = NEAR_SURFACE_M
+    # The teacher's view: loss += pooled_weight * the error of the nearest surface per cell of the
+    # teacher's 18 x 32 grid (loss.TEACHER_GRID, near cells weighted as above).  A pole a few pixels
+    # wide is a few pixels of the full-frame mean but a whole cell of what the teacher flies on.
+    pooled_weight: float = 0.0
     seed: int = 0
     device: str = "cpu"
     workers: int = 2
@@ -99,6 +103,8 @@ class CmwaeTrainConfig:
         if not 0.0 <= self.consistency_weight <= 1000.0:
             raise ValueError(f"consistency_weight={self.consistency_weight} must lie in [0, 1000]")
         check_near_weighting(self.near_weight, self.near_m)
+        if not 0.0 <= self.pooled_weight <= 1000.0:
+            raise ValueError(f"pooled_weight={self.pooled_weight} must lie in [0, 1000]")
         if self.consistency_weight > 0.0 and self.anchor_from is not None:
             raise ValueError("consistency_weight and anchor_from both pull the corrupted latent: anchoring toward the "
                              "anchor's clean latent, consistency toward this encoder's own; give one")  # fmt: skip
@@ -227,6 +233,9 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
             weights = torch.where(was_corrupted, config.corrupted_loss_weight, 1.0).to(device)
             pixel_weights = 1.0 + config.near_weight * near_surface_mask(depth, config.near_m) if config.near_weight else None
             losses = cmwae_loss(recon.float(), depth, z.float(), config.mmd_weight, loss_generator, weights, pixel_weights)
+            if config.pooled_weight > 0.0:
+                losses["pooled"] = pooled_nearest_error(recon.float(), depth, config.near_weight, config.near_m).mean()
+                losses["loss"] = losses["loss"] + config.pooled_weight * losses["pooled"]
             if anchor is not None:
                 with torch.no_grad():
                     z_anchor = anchor(gray, path.image(depth))
@@ -255,7 +264,7 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
                 t_last, images = now, 0
                 if progress is not None:
                     progress.update(0, loss=values["loss"], mse=values["recon_mse"], mmd=values["mmd"],
-                                    **{k: values[k] for k in ("anchor", "consistency") if k in values})
+                                    **{k: values[k] for k in ("pooled", "anchor", "consistency") if k in values})
             if progress is not None:
                 progress.update(1)
             if step % config.checkpoint_every == 0 and step < total_steps:

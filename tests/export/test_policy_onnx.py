@@ -30,9 +30,11 @@ from export.policy_onnx import (
     ParityError,
     VariantBound,
     VariantRefusedError,
+    bound_problem,
     export_policy,
     load_networks,
     random_inputs,
+    select_nodes,
     torch_outputs,
     variant_path,
 )
@@ -206,13 +208,40 @@ def test_variants_load_with_their_parity_stated(exported, recorded_logs):
     others = [n for n in quantised.graph.node if n.op_type in ("Conv", "Gemm", "MatMul") and n not in gray]
     assert gray and all(n.input[1] in dequantised for n in gray)
     assert len(others) > len(gray) and not any(i in dequantised for n in others for i in n.input)
-    assert json.loads(meta_of(int8["path"])[KEY_PARITY])["quantised_nodes"] == [n.name for n in gray]
+    stated = json.loads(meta_of(int8["path"])[KEY_PARITY])
+    assert stated["quantised_nodes"] == int8["quantised_nodes"] == [n.name for n in gray]  # every one within budget here
+    assert stated["selection"]["budget"] == TEST_BOUND.max_action_error / 2
+    assert 0.0 < stated["selection"]["calibration_max_action_error"] <= stated["selection"]["budget"]
     fp16 = onnx.load(report.variants["fp16"]["path"])
     assert any(t.data_type == onnx.TensorProto.FLOAT16 for t in fp16.graph.initializer)
 
 
 def meta_of(path: str | Path) -> dict[str, str]:
     return {p.key: p.value for p in onnx.load(str(path)).metadata_props}
+
+
+def test_int8_keeps_only_the_layers_within_its_budget():
+    # quantising a layer costs it its own error; together the errors add (the greedy's view)
+    alone = {"/encoder/gray/0": 1e-3, "/encoder/gray/3": 5e-2, "/encoder/gray/6": 2e-3}
+    calls = []
+
+    def action_error(nodes):
+        calls.append(list(nodes))
+        return sum(alone[n] for n in nodes)
+
+    # within the budget together: one calibration, every layer
+    everything = select_nodes(list(alone), action_error, budget=0.1)
+    assert everything.nodes == list(alone) and everything.together == pytest.approx(0.053) and everything.alone == {}
+    assert calls == [list(alone)]
+    calls.clear()
+    selection = select_nodes(list(alone), action_error, budget=4e-3)
+    assert selection.nodes == ["/encoder/gray/0", "/encoder/gray/6"] and selection.together == pytest.approx(3e-3)
+    assert selection.alone == alone and selection.budget == 4e-3
+    assert calls[:4] == [list(alone), *([n] for n in alone)] and ["/encoder/gray/0", "/encoder/gray/6"] in calls
+    assert "/encoder/gray/3 5.00e-02" in selection.describe()
+    # within a tighter budget the second-best no longer fits beside the best
+    assert select_nodes(list(alone), action_error, budget=2.5e-3).nodes == ["/encoder/gray/0"]
+    assert select_nodes(list(alone), action_error, budget=1e-4).nodes == []
 
 
 def test_int8_over_its_bound_is_refused_with_the_numbers(checkpoints, recorded_logs, tmp_path):
@@ -222,11 +251,10 @@ def test_int8_over_its_bound_is_refused_with_the_numbers(checkpoints, recorded_l
         export_policy(*checkpoints, out, recorded=recorded_logs, variants=("fp16", "int8"), recorded_samples=4,
                       bound=VariantBound(max_action_error=1e-6, min_held_out_steps=10))  # fmt: skip
     message, report = str(err.value), err.value.report
-    refused = report.refused["int8"]
-    action = refused["max_abs_error"][c.ONNX_OUTPUT_ACTION]
-    assert action > 1e-6 and f"int8 max action error {action:.4f} > 1e-06 over {refused['steps']} held-out" in message
-    assert f"latent error {refused['max_abs_error'][c.ONNX_OUTPUT_LATENT]:.4f}" in message
-    assert not variant_path(out, "int8").exists() and Path(refused["path"]).is_file()  # kept as *.refused only
+    # no gray convolution stays within half the bound on the calibration steps, even alone
+    assert "int8: no Conv node keeps the max action error within 5e-07 on the calibration steps even alone (/encoder/gray/" in message
+    assert "not written, fly the fp32 model" in report.refused["int8"]["reason"]
+    assert not variant_path(out, "int8").exists() and not list(tmp_path.glob("*.candidate"))
     assert out.is_file() and set(report.variants) == {"fp16"}  # fp32 and fp16 are written
     assert "variant int8: REFUSED, not written" in report.format()
 
@@ -236,6 +264,16 @@ def test_int8_over_its_bound_is_refused_with_the_numbers(checkpoints, recorded_l
     with pytest.raises(VariantRefusedError, match="int8 needs recorded flights"):
         export_policy(*checkpoints, out, variants=("int8",), random_samples=2)
     assert not variant_path(out, "int8").exists()
+
+
+def test_a_selected_int8_over_its_bound_on_the_held_out_flights_is_refused():
+    errors = {"steps": 400, "max_abs_error": {c.ONNX_OUTPUT_ACTION: 0.03, c.ONNX_OUTPUT_HIDDEN: 0.01, c.ONNX_OUTPUT_LATENT: 0.2},
+              "mean_abs_error": {c.ONNX_OUTPUT_ACTION: 0.004}}  # fmt: skip
+    problem = bound_problem("int8", errors, VariantBound())
+    assert problem == ("int8 max action error 0.0300 > 0.02 over 400 held-out recorded steps (GRU state carried; latent "
+                       "error 0.2000, mean action error 0.0040): not written, fly the fp32 model")  # fmt: skip
+    assert bound_problem("int8", {**errors, "max_abs_error": {**errors["max_abs_error"], c.ONNX_OUTPUT_ACTION: 0.01}}, VariantBound()) is None
+    assert bound_problem("fp16", errors, VariantBound()) is None  # fp16 has no bound
 
 
 def test_encoder_mismatch_is_refused(checkpoints, tmp_path):

@@ -1,5 +1,5 @@
 """Where a distilled student loses to its teacher, measured on the student's own flights:
-    .venv/bin/python scripts/student-gap.py --student models/student-near --encoder models/cmwae-near \
+    .venv/bin/python scripts/student-gap.py --student models/student-pooled --encoder models/cmwae-pooled \
         --teacher models/teacher --levels 5,15,20 --episodes 20
 
 The student flies Table II's seeded rooms with clean depth (the rooms of `cmnav eval policy`, mean

@@ -169,8 +169,8 @@ def _cmd_train_cmwae(args: argparse.Namespace) -> int:
         lr_final=args.lr_final, resume=args.resume, max_wall_s=None if args.minutes is None else args.minutes * 60.0,
         init_from=args.init_from, anchor_from=args.anchor,
         **_given(args, "scheme", "modalities", "size", "batch_size", "lr", "mmd_weight", "seed", "device", "workers",
-                 "checkpoint_every", "precision", "corrupted_loss_weight", "anchor_weight", "consistency_weight", "near_weight", "near_m", "pooled_weight",
-                 "val_images"),
+                 "checkpoint_every", "precision", "corrupted_loss_weight", "anchor_weight", "consistency_weight", "near_weight",
+                 "near_m", "pooled_weight", "val_images"),
     )  # fmt: skip
     out = train_cmwae(config)
     print(f"checkpoint in {out}")

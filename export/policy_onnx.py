@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 import subprocess
 import warnings
 from collections.abc import Callable, Iterator
@@ -613,9 +614,10 @@ def make_int8(
             )  # fmt: skip
 
         reference = onnx_outputs(cpu_session(fp32_path), calibration)[c.ONNX_OUTPUT_ACTION]
+        trials: dict[frozenset[str], Path] = {}  # every set scored, so the chosen one is not calibrated again
 
         def action_error(chosen: list[str]) -> float:
-            trial = Path(tmp) / "trial.onnx"
+            trial = trials.setdefault(frozenset(chosen), Path(tmp) / f"trial{len(trials)}.onnx")
             quantise(chosen, trial)
             action = onnx_outputs(cpu_session(trial), calibration)[c.ONNX_OUTPUT_ACTION]
             error = float(np.nan_to_num(np.abs(action.astype(np.float64) - reference), nan=np.inf).max())
@@ -626,7 +628,7 @@ def make_int8(
         if not selection.nodes:
             raise ExportError(f"int8: no {'/'.join(op_types)} node keeps the max action error within {budget:g} on the "
                               f"calibration steps even alone ({selection.describe()})")  # fmt: skip
-        quantise(selection.nodes, Path(out_path))
+        shutil.copyfile(trials[frozenset(selection.nodes)], out_path)
     return selection
 
 

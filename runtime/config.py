@@ -50,6 +50,8 @@ _WATCHDOG_RANGES = {
     "telemetry_stale_ms": (20.0, 1000.0, "ms", "PX4 streams position and attitude at 30-50 Hz"),
     "depth_invalid_max_s": (CONTROL_PERIOD_S, 10.0, "s", "blind flight is cut short"),
     "hold_grace_s": (0.0, 5.0, "s", "the hover before Hold ends"),
+    "brake_speed_m_s": (0.05, 1.0, "m/s", "a vehicle that is still moving is not stopped"),
+    "brake_timeout_s": (0.0, 8.0, "s", "inside systemd's 15 s stop timeout"),
     "geofence_radius_m": (0.0, 200.0, "m", "a fence the vehicle can reach"),
     "altitude_max_m": (0.0, 120.0, "m", "a band below the usual 120 m ceiling"),
     "tracking_window_s": (CONTROL_PERIOD_S, 5.0, "s", "a stuck vehicle is caught within seconds"),
@@ -79,7 +81,14 @@ class WatchdogConfig:
     geofence_radius_m: float = 20.0  # horizontal distance from where offboard started
     altitude_min_m: float = 0.2  # band above home
     altitude_max_m: float = 8.0
-    hold_grace_s: float = 1.0  # hover this long after a trip, then offboard.stop() (PX4 Hold)
+    # Every end of an episode (goal, time limit, trip, stop signal) brakes before leaving offboard:
+    # a zero-velocity setpoint for at least hold_grace_s and until the measured speed is below
+    # brake_speed_m_s (or brake_timeout_s has passed), then offboard.stop() (PX4 Hold).  PX4 left
+    # moving keeps going: Hold entered at 0.3-0.6 m/s, then Land, drifted ~0.8 m into the wall
+    # behind the goal (MAVLINK-NOTES.md).  The timeout covers telemetry that no longer comes.
+    hold_grace_s: float = 1.0
+    brake_speed_m_s: float = 0.2
+    brake_timeout_s: float = 4.0
     period_s: float = 0.02  # how often the watchdog task checks the time-based trips
     # Tracking (runtime.tracking): the measured velocity against the command passed through a
     # first-order lag of tracking_lag_s; an error (vehicle frame, m/s) above tracking_error_max_m_s
@@ -106,6 +115,7 @@ class WatchdogConfig:
             "geofence_radius_m",
             "altitude_max_m",
             "hold_grace_s",
+            "brake_speed_m_s",
             "period_s",
             "tracking_window_s",
             "tilt_window_s",
@@ -149,6 +159,12 @@ class WatchdogConfig:
         )
         for key, (low, high, unit, why) in _WATCHDOG_RANGES.items():
             _within(f"watchdog.{key}", getattr(self, key), low, high, unit, why)
+        _require(
+            self.brake_timeout_s >= self.hold_grace_s,
+            "watchdog.brake_timeout_s",
+            self.brake_timeout_s,
+            f">= watchdog.hold_grace_s={self.hold_grace_s} (the brake lasts at least the hover)",
+        )
 
 
 # Connection URL schemes MAVSDK 4 understands.

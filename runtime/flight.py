@@ -52,7 +52,7 @@ from .policy_step import PolicyMemory, StepResult, compute_step
 from .slots import LatestSlot
 from .state import VehicleError, VehicleState
 from .timing import StageTimes
-from .watchdog import TripCause, WatchInputs, Watchdog
+from .watchdog import TripCause, WatchInputs, Watchdog, brake_ended, brake_record
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +85,9 @@ class EpisodeResult:
     final_distance_m: float = float("nan")
     frames_rejected: int = 0  # unfit camera frames since FlightLoop.start (runtime.camera.validate)
     tracking_error_peak_m_s: float = 0.0  # the largest tracking error sustained a whole window (runtime.tracking)
+    # How the brake before Hold ended ({ended: stopped | brake_timeout, duration_s, speed_at_hold_m_s};
+    # runtime.watchdog.brake_record); None when no brake ran (the pilot took over, nothing flown).
+    brake: dict | None = None
 
     def summary(self) -> dict:
         """The episode's JSON record: the keys of an episode in ``cmnav fly``'s summary and of the
@@ -156,16 +159,34 @@ class FlightLoop:
         self._executor.shutdown(wait=False, cancel_futures=True)
 
     async def safe_stop(self) -> None:
-        """Leave offboard safely when the program must stop mid-flight: hover, then Hold at once.
+        """Leave offboard safely when the program must stop mid-flight: brake (hover until stopped,
+        ``brake_timeout_s`` at most), then Hold.
 
         Does nothing if the pilot took over.  Used on shutdown (e.g. SIGTERM), outside :meth:`fly`.
         """
         self.watchdog.stop()
         try:
-            await self.gate.hover()
-            await self.gate.hold()
+            await self.brake_then_hold()
         except VehicleError as err:
             log.error("safe stop failed (%s): MAVSDK stops re-sending on close, PX4's offboard-loss failsafe follows", err)
+
+    async def brake_then_hold(self) -> dict | None:
+        """Zero-velocity setpoint until the vehicle has stopped (``runtime.watchdog.brake_ended``),
+        then Hold; returns the brake's record (None if the pilot has the vehicle: nothing sent).
+        Raises VehicleError if a command fails."""
+        t_brake_ns = time.monotonic_ns()
+        if not await self.gate.hover():
+            return None
+        self._log_hover("brake")
+        while (ended := brake_ended(self.vehicle.state(), t_brake_ns, time.monotonic_ns(), self.config.watchdog)) is None:
+            if self.gate.released:  # the pilot took over while it braked: the vehicle is theirs
+                return None
+            await self._sleep_alive(self.config.watchdog.period_s)
+        now_ns = time.monotonic_ns()
+        record = brake_record(ended, t_brake_ns, now_ns, self.vehicle.state())
+        log.info("braked: %s", record)
+        await self.gate.hold()
+        return record
 
     def set_goal(self, goal_enu_m: np.ndarray) -> None:
         """New goal (local ENU, m): the GRU state resets."""
@@ -233,20 +254,17 @@ class FlightLoop:
                 # The watchdog task ended without a trip: only a bug does that; fly no further.
                 episode.finish("aborted", "watchdog task ended", time.monotonic_ns())
                 break
-        # Goal reached or out of time: hover, then Hold, as the watchdog would (but not a trip).
+        # Goal reached or out of time: brake, then Hold, as the watchdog would (but not a trip).
         self.watchdog.stop()
         try:
-            if await self.gate.hover():
-                self._log_hover("episode_end_hover")
-            await self._sleep_alive(self.config.watchdog.hold_grace_s)
-            await self.gate.hold()
+            episode.brake = await self.brake_then_hold()
         except VehicleError as err:
             log.error("hover/Hold at the end of the episode failed: %s", err)
             episode.abort_reason = f"end of episode hover/Hold failed: {err}"
 
     async def _finish_trip_response(self, watchdog: asyncio.Task) -> None:
         """Let the watchdog finish its response (Hold after the grace period, or nothing if released)."""
-        limit_s = self.config.watchdog.hold_grace_s + 2.0 * self.config.vehicle.command_timeout_s + 1.0
+        limit_s = self.config.watchdog.brake_timeout_s + 2.0 * self.config.vehicle.command_timeout_s + 1.0
         if watchdog.done():
             if watchdog.exception() is None:
                 return
@@ -458,6 +476,7 @@ class FlightLoop:
             final_distance_m=round(final_distance_m, 3),
             frames_rejected=self.frames_rejected,
             tracking_error_peak_m_s=round(self.watchdog.tracking_sustained_peak_m_s, 3),
+            brake=episode.brake or self.watchdog.brake,
         )
 
 
@@ -482,6 +501,7 @@ class _Episode:
     abort_reason: str | None = None
     t_end_ns: int | None = None
     timing: StageTimes = field(default_factory=StageTimes)
+    brake: dict | None = None
     ended: asyncio.Future = field(default_factory=lambda: asyncio.get_running_loop().create_future())
 
     def finish(self, outcome: str, reason: str | None, t_ns: int) -> None:

@@ -13,7 +13,8 @@ supervision, a refused start (offboard refused by the autopilot) is recorded wit
 :meth:`Watchdog.refuse_start`.
 
 Response to a trip: a zero-velocity (hover) setpoint at once, then ``offboard.stop()`` (PX4
-Hold) after ``hold_grace_s``.  Pilot left offboard: the runtime stops commanding at once and
+Hold) once the vehicle has braked (:func:`brake_ended`: at least ``hold_grace_s``, then the
+measured speed below ``brake_speed_m_s``, or ``brake_timeout_s`` at the latest).  Pilot left offboard: the runtime stops commanding at once and
 sends nothing more (no Hold either: the pilot has the vehicle).  Every trip is logged and
 recorded as ``{cause, detail, t_s, detect_ms, response, hold_t_s}`` (and sent to ``on_event``
 with ``event`` = "trip", then again with "hold" once Hold was commanded) where ``t_s`` is seconds since
@@ -107,6 +108,37 @@ class WatchInputs:
     last_rejection: str = ""  # why the last of them was refused
 
 
+def brake_ended(vehicle: VehicleState, t_brake_ns: int, now_ns: int, config: WatchdogConfig) -> str | None:
+    """Whether the brake that began at ``t_brake_ns`` (zero-velocity setpoint sent) may end and Hold
+    follow: "stopped" (braked at least ``hold_grace_s`` and the speed measured since is below
+    ``brake_speed_m_s``), "brake_timeout" (braked ``brake_timeout_s``, stopped or not: stale or
+    missing telemetry cannot hold the vehicle in offboard for ever), None (keep braking).
+
+    The speed is the norm of the world-ENU velocity, trusted only when it was received after the
+    brake began and within ``telemetry_stale_ms``."""
+    braked_ns = now_ns - t_brake_ns
+    if braked_ns >= config.brake_timeout_s * _NS_PER_S:
+        return "brake_timeout"
+    if braked_ns < config.hold_grace_s * _NS_PER_S:
+        return None
+    fresh = vehicle.t_posvel_ns > t_brake_ns and now_ns - vehicle.t_posvel_ns <= config.telemetry_stale_ms * _NS_PER_MS
+    if fresh and measured_speed_m_s(vehicle) < config.brake_speed_m_s:
+        return "stopped"
+    return None
+
+
+def measured_speed_m_s(vehicle: VehicleState) -> float:
+    """|velocity| (m/s, world ENU) as telemetry last reported it; NaN before any."""
+    return float(np.linalg.norm(vehicle.vel_enu_m_s))
+
+
+def brake_record(ended: str, t_brake_ns: int, now_ns: int, vehicle: VehicleState) -> dict:
+    """The summary's record of one brake: how it ended, how long it took (s), the speed at Hold (m/s)."""
+    speed = measured_speed_m_s(vehicle)
+    return {"ended": ended, "duration_s": round((now_ns - t_brake_ns) / _NS_PER_S, 3),
+            "speed_at_hold_m_s": round(speed, 3) if math.isfinite(speed) else None}  # fmt: skip
+
+
 class Watchdog:
     """Detects faults and drives the safe-state response through the :class:`CommandGate`."""
 
@@ -127,6 +159,7 @@ class Watchdog:
         self._home_z_enu_m = 0.0
         self._depth_invalid = OverBound()
         self._hold_pending = False
+        self.brake: dict | None = None  # how the trip response's brake ended (brake_record)
         self._tracking = TrackingMonitor(config.tracking_error_max_m_s, config.tracking_lag_s, config.tracking_window_s)
         self._tracking_status: TrackingStatus | None = None
         self._t_posvel_seen_ns = 0
@@ -180,6 +213,7 @@ class Watchdog:
         self._home_z_enu_m = float(state.home_enu_m[2])
         self._depth_invalid.reset()
         self._hold_pending = False
+        self.brake = None
         cfg = self.config
         self._tracking = TrackingMonitor(cfg.tracking_error_max_m_s, cfg.tracking_lag_s, cfg.tracking_window_s)
         self._tracking.start(now_ns, state.vel_enu_m_s, state.yaw_enu_rad)
@@ -269,8 +303,9 @@ class Watchdog:
         if self._hold_pending and not self.gate.released:
             tripped = self.tripped
             assert tripped is not None
-            if now - tripped.t_ns >= cfg.hold_grace_s * _NS_PER_S:
-                await self._send_hold(tripped, now)
+            ended = brake_ended(v, tripped.t_ns, now, cfg)
+            if ended is not None:
+                await self._send_hold(tripped, now, brake_record(ended, tripped.t_ns, now, v))
         return trip
 
     async def _check_faults(self, inputs: WatchInputs) -> Trip | None:
@@ -399,16 +434,18 @@ class Watchdog:
         self._emit("trip", trip)
         return trip
 
-    async def _send_hold(self, trip: Trip, now_ns: int) -> None:
+    async def _send_hold(self, trip: Trip, now_ns: int, brake: dict) -> None:
         try:
             sent = await self.gate.hold()
         except VehicleError as err:
             log.error("watchdog: Hold (offboard.stop) failed (%s); retrying on the next check", err)
             return
         self._hold_pending = False
+        self.brake = brake
         if sent:
             trip.hold_t_ns = now_ns
-            log.warning("watchdog: vehicle commanded to Hold %.2f s after the %s trip", (now_ns - trip.t_ns) / _NS_PER_S, trip.cause.value)
+            log.warning("watchdog: vehicle commanded to Hold %.2f s after the %s trip (brake: %s)",
+                        (now_ns - trip.t_ns) / _NS_PER_S, trip.cause.value, brake)  # fmt: skip
             self._emit("hold", trip)
 
     def _hold_sent(self) -> bool:

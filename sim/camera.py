@@ -118,3 +118,22 @@ def camera_pose(
         offset = offset + jitter.offset_body_flu_m
         quat = quat_multiply(quat_enu_flu, jitter.quat_body_cam)
     return pos_enu_m + quat_rotate(quat_enu_flu, offset), quat
+
+
+# The camera never renders from inside a wall, the floor or the ceiling: closer than this to a
+# face of the room it is held at this distance (a D455's glass sits ~1 cm behind its bezel).
+CAMERA_ROOM_MARGIN_M = 0.02
+
+
+def clamp_into_room(cam_pos_enu_m: Tensor, room_size_m: Tensor, margin_m: float = CAMERA_ROOM_MARGIN_M) -> Tensor:
+    """Camera positions [B, 3] (world ENU, m) held inside rooms [B, 3] (L, W, H; the room spans
+    [0, L] x [0, W] x [0, H]) by ``margin_m``.
+
+    A vehicle whose pose comes from elsewhere (PX4 SIH knows no room; its estimate sits a few
+    centimetres under the floor on the ground) can put the camera outside the room, where a ray
+    cast from inside gives negative or infinite depth that no sensor reports.  A real camera
+    pressed against a surface sees that surface at its minimum distance: holding it at the
+    margin renders exactly that."""
+    lo = torch.full_like(room_size_m, margin_m)
+    hi = (room_size_m - margin_m).clamp_min(margin_m)
+    return torch.minimum(torch.maximum(cam_pos_enu_m, lo), hi)

@@ -1,7 +1,10 @@
 """Renders what the vehicle's camera sees, at the camera rate, from whatever pose it is given.
 
 The feed takes a pose source (a callable returning the latest body pose), not the dynamics, so
-the same world and camera can follow our own dynamics or, later, a real PX4 SIH's pose.
+the same world and camera can follow our own dynamics or a real PX4 SIH's pose.  Only physical
+frames go out: the camera is held inside the room (``sim.camera.clamp_into_room``: a pose from an
+autopilot that knows no room can sit under the floor), and a frame whose depth is still negative,
+infinite or NaN is withheld and the reason logged, never served.
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ import torch
 
 from runtime.camera.frame import Frame
 from runtime.contract.images import invalid_depth_fraction
-from sim.camera import CameraModel, camera_pose
+from sim.camera import CameraModel, camera_pose, clamp_into_room
 from sim.degradation import ProjectorOffModel
 from sim.render import render
 from sim.world import WorldBatch
@@ -55,6 +58,7 @@ class CameraFeed:
         self._degradation = degradation
         self._generator = torch.Generator().manual_seed(seed)
         self.skipped_deadlines = 0
+        self.withheld_unphysical = 0  # frames never served: depth no sensor reports
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="camera-render", daemon=True)
 
@@ -64,6 +68,7 @@ class CameraFeed:
         pos = torch.as_tensor(kin.pos_enu_m, dtype=torch.float32).reshape(1, 3)
         quat = torch.as_tensor(kin.quat_enu_flu, dtype=torch.float32).reshape(1, 4)
         cam_pos, cam_quat = camera_pose(pos, quat, self._camera)
+        cam_pos = clamp_into_room(cam_pos, self._world.room_size_m)
         with torch.no_grad():
             out = render(self._world, cam_pos, cam_quat, self._camera)
         depth = out.depth_m
@@ -83,7 +88,7 @@ class CameraFeed:
 
     def start(self) -> None:
         """Render and publish the first frame now (so a client never waits for one), then run."""
-        self._publish(self.render_frame(self._pose_source()))
+        self._render_and_publish()
         self._thread.start()
 
     def stop(self) -> None:
@@ -94,10 +99,30 @@ class CameraFeed:
     def _run(self) -> None:
         next_s = time.monotonic() + self._period_s
         while not self._stop.wait(max(0.0, next_s - time.monotonic())):
-            self._publish(self.render_frame(self._pose_source()))
+            self._render_and_publish()
             next_s += self._period_s
             now = time.monotonic()
             if now > next_s:
                 missed = int((now - next_s) / self._period_s) + 1
                 self.skipped_deadlines += missed
                 next_s += missed * self._period_s
+
+    def _render_and_publish(self) -> None:
+        frame = self.render_frame(self._pose_source())
+        problem = unphysical_depth(frame.depth_m)
+        if problem is None:
+            self._publish(frame)
+            return
+        self.withheld_unphysical += 1
+        if self.withheld_unphysical == 1 or self.withheld_unphysical % 100 == 0:
+            log.error("camera frame %d withheld: %s (%d withheld so far)", frame.seq, problem, self.withheld_unphysical)
+
+
+def unphysical_depth(depth_m: np.ndarray) -> str | None:
+    """Why ``depth_m`` (metres, 0 = invalid) is not something a depth sensor reports (negative,
+    infinite or NaN values), or None when every pixel is a distance or the invalid 0."""
+    bad = ~np.isfinite(depth_m) | (depth_m < 0.0)
+    count = int(np.count_nonzero(bad))
+    if count == 0:
+        return None
+    return f"{count} depth pixels are negative, infinite or NaN (a camera outside the room?)"

@@ -41,7 +41,7 @@ from sim.world import make_worlds
 
 from .judge import Judge
 from .placement import Placement, place_room
-from .pose_link import PoseLink
+from .pose_link import READY_SYSTEM_STATES, PoseLink
 
 log = logging.getLogger(__name__)
 
@@ -170,8 +170,10 @@ class WorldFollower:
                 missing.append("no HOME_POSITION")
             if v.pose() is None:
                 missing.append("no LOCAL_POSITION_NED + ATTITUDE_QUATERNION")
-            if not v.armable:
-                missing.append("not armable (SYS_STATUS pre-arm check)")
+            if v.system_status not in READY_SYSTEM_STATES:
+                missing.append(f"still booting (HEARTBEAT system_status {v.system_status}, not STANDBY)")
+            if not v.prearm_ok:
+                missing.append("pre-arm checks not passed (SYS_STATUS health bit MAV_SYS_STATUS_PREARM_CHECK)")
         return missing
 
     def _place(self) -> None:

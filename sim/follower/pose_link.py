@@ -34,6 +34,18 @@ REQUEST_RETRY_S = 1.0
 HEARTBEAT_PERIOD_S = 1.0
 
 
+def prearm_passed(sensors_health: int) -> bool:
+    """PX4's pre-arm checks pass, as SYS_STATUS tells: the MAV_SYS_STATUS_PREARM_CHECK bit of
+    ``onboard_control_sensors_health``.  PX4 v1.16 never sets that bit in ``..._present`` nor
+    ``..._enabled`` (recorded: tests/sim/follower/fixtures/px4_v1_16_startup.json), so a check that
+    needs it there waits for ever."""
+    return bool(sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK)
+
+
+# HEARTBEAT.system_status of an autopilot past its boot (PX4: UNINIT for ~4 s, then STANDBY).
+READY_SYSTEM_STATES = (mavlink.MAV_STATE_STANDBY, mavlink.MAV_STATE_ACTIVE)
+
+
 class AutopilotLinkError(OSError):
     """The pose link could not be opened."""
 
@@ -45,7 +57,8 @@ class AutopilotView:
     system_id: int | None = None
     armed: bool = False
     mode: str = "UNKNOWN"
-    armable: bool = False
+    system_status: int = mavlink.MAV_STATE_UNINIT  # HEARTBEAT.system_status (MAV_STATE)
+    prearm_ok: bool = False  # SYS_STATUS: prearm_passed
     landed_state: int = mavlink.MAV_LANDED_STATE_UNDEFINED
     home_local_ned_m: np.ndarray | None = None
     pos_ned_m: np.ndarray | None = None
@@ -71,6 +84,11 @@ class AutopilotView:
         if self.position_messages < 2 or self.t_position_ns <= self.t_first_position_ns:
             return None
         return (self.position_messages - 1) / ((self.t_position_ns - self.t_first_position_ns) * 1e-9)
+
+    @property
+    def armable(self) -> bool:
+        """Ready to arm as PX4 v1.16 reports it: booted (STANDBY) and its pre-arm checks passed."""
+        return self.system_status in READY_SYSTEM_STATES and self.prearm_ok
 
     @property
     def on_ground(self) -> bool:
@@ -168,9 +186,9 @@ class PoseLink:
             self._peer = addr
             v.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
             v.mode = _mode_name(msg.custom_mode)
+            v.system_status = msg.system_status
         elif kind == "SYS_STATUS":
-            bit = mavlink.MAV_SYS_STATUS_PREARM_CHECK
-            v.armable = bool(msg.onboard_control_sensors_present & bit) and bool(msg.onboard_control_sensors_health & bit)
+            v.prearm_ok = prearm_passed(msg.onboard_control_sensors_health)
         elif kind == "EXTENDED_SYS_STATE":
             v.landed_state = msg.landed_state
         elif kind == "HOME_POSITION":

@@ -46,13 +46,16 @@ def parse_args(argv: list[str] | None = None) -> SitlConfig:
     parser.add_argument("--heading-deg", type=float, default=SitlConfig.heading_deg,
                         help="heading at spawn, degrees counter-clockwise from the room's +x (default 0: facing the goal "
                         "side; 90 = north, where PX4 SIH starts)")  # fmt: skip
+    parser.add_argument("--boot-time-scale", type=float, default=SitlConfig.boot_time_scale,
+                        help="replay PX4 v1.16's recorded start-up (STANDBY at 4.25 s, pre-arm checks passed at 5.27 s) "
+                        f"at this fraction of its times: 1 as PX4, 0 ready at once (default {SitlConfig.boot_time_scale})")
     args = parser.parse_args(argv)
     try:
         injections = tuple(parse_injection(text, [FaultSite.VEHICLE]) for text in args.inject)
         config = SitlConfig(
             args.mavlink_port, args.camera_port, args.level, args.seed, args.episode_json, args.trace,
             args.physics_hz, args.camera_hz, injections, args.status_json, args.degrade, args.stand_in, args.pose_port,
-            args.heading_deg,
+            args.heading_deg, args.boot_time_scale,
         )  # fmt: skip
         config.validate()
     except ValueError as err:  # InjectionError is one

@@ -246,7 +246,7 @@ class Autopilot:
 
     def status(self) -> AutopilotStatus:
         c = self._commander
-        return AutopilotStatus(c.armed, c.mode, c.landed_state, c.armable, c.crashed)
+        return AutopilotStatus(c.armed, c.mode, c.landed_state, c.armable, c.crashed, c.booted)
 
     def publish(self, kin: Kinematics, t_s: float, events: list[Event] | None = None) -> list[Event]:
         """Send the streams due now and a STATUSTEXT per event; return those events.

@@ -40,6 +40,11 @@ TAKEOFF_ACCEPTANCE_M = 0.1
 SELECTABLE_MODES = (HOLD, TAKEOFF, LAND, OFFBOARD, POSCTL)
 # Return mode: fly home at the current height, then land, once within this horizontal distance (m).
 RETURN_ACCEPTANCE_M = 0.3
+# PX4 v1.16 SITL's start-up as recorded on its GCS link (tests/sim/follower/fixtures/
+# px4_v1_16_startup.json): HEARTBEAT system_status UNINIT until 4.25 s after start, STANDBY after;
+# SYS_STATUS's pre-arm bit healthy from 5.27 s, and never set as present or enabled.
+PX4_STANDBY_AFTER_S = 4.25
+PX4_PREARM_AFTER_S = 5.27
 # The offboard-loss failsafe's mode per COM_OBL_RC_ACT (Terminate and Disarm stop the motors instead).
 _OBL_MODES = {OBL_POSITION: POSCTL, OBL_ALTITUDE: ALTCTL, OBL_MANUAL: MANUAL, OBL_RETURN: RETURN, OBL_LAND: LAND,
               OBL_HOLD: HOLD}  # fmt: skip
@@ -67,9 +72,14 @@ class Commander:
         kin: Kinematics,
         t_s: float,
         offboard_allowed: Callable[[float], bool] | None = None,
+        boot_time_scale: float = 0.0,
     ) -> None:
         """``offboard_allowed(t_s)``, when given, is asked before OFFBOARD is entered (False:
-        DENIED, as PX4 refuses a mode that is not available; the fault injection uses it)."""
+        DENIED, as PX4 refuses a mode that is not available; the fault injection uses it).
+        ``boot_time_scale``: PX4's start-up (booting, then pre-arm checks passing) replayed at this
+        fraction of its recorded times (1: as PX4; 0: ready at once)."""
+        if not 0.0 <= boot_time_scale <= 1.0:
+            raise ValueError(f"boot_time_scale {boot_time_scale} must be in [0, 1]")
         self._params = params
         self._offboard_allowed = offboard_allowed
         self._home_enu_m = np.asarray(home_enu_m, dtype=np.float64)
@@ -93,6 +103,10 @@ class Commander:
         self._t_ground_s = t_s
         # A stick mode engaged by the failsafe without RC input: descend and land where we are.
         self._descend_without_rc = False
+        self._t_standby_s = t_s + boot_time_scale * PX4_STANDBY_AFTER_S
+        self._t_prearm_s = t_s + boot_time_scale * PX4_PREARM_AFTER_S
+        self.booted = boot_time_scale == 0.0  # HEARTBEAT STANDBY (not UNINIT)
+        self._prearm_ok = boot_time_scale == 0.0
 
     # ---- state the telemetry reports ------------------------------------------------------
 
@@ -110,8 +124,8 @@ class Commander:
 
     @property
     def armable(self) -> bool:
-        """Pre-arm checks pass (SYS_STATUS's pre-arm bit): on the ground and not crashed."""
-        return self._on_ground and not self.crashed
+        """Pre-arm checks pass (SYS_STATUS's pre-arm health bit): booted, on the ground, not crashed."""
+        return self._prearm_ok and self._on_ground and not self.crashed
 
     def drain_events(self) -> list[Event]:
         """Events since the last call, oldest first."""
@@ -126,6 +140,8 @@ class Commander:
             return ACCEPTED
         if self.crashed:
             return self._refuse(t_s, DENIED, "Arming denied: vehicle crashed")
+        if not self._prearm_ok:
+            return self._refuse(t_s, DENIED, "Arming denied: system not ready (pre-arm checks)")
         if not kin.on_ground:
             return self._refuse(t_s, DENIED, "Arming denied: not landed")
         if self.mode == OFFBOARD and not self._setpoint_fresh(t_s, OFFBOARD_ENTRY_MAX_SETPOINT_AGE_S):
@@ -213,7 +229,9 @@ class Commander:
     # ---- per physics step -----------------------------------------------------------------
 
     def update(self, t_s: float, kin: Kinematics) -> None:
-        """Land detection, auto-disarm, take-off completion and the offboard-loss failsafe."""
+        """Start-up, land detection, auto-disarm, take-off completion and the offboard-loss failsafe."""
+        self.booted = self.booted or t_s >= self._t_standby_s
+        self._prearm_ok = self._prearm_ok or t_s >= self._t_prearm_s
         if kin.on_ground != self._on_ground:
             self._on_ground = kin.on_ground
             self._t_ground_s = t_s

@@ -34,7 +34,8 @@ CAPABILITIES = (
     | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
     | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
 )
-# Sensors and controllers a healthy PX4 multicopter reports present, enabled and healthy.
+# Sensors and controllers a healthy PX4 multicopter reports present, enabled and healthy.  The
+# pre-arm check is reported only in the health bits, as PX4 v1.16 does.
 SENSORS = (
     mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO
     | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
@@ -48,7 +49,6 @@ SENSORS = (
     | mavlink.MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL
     | mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
     | mavlink.MAV_SYS_STATUS_AHRS
-    | mavlink.MAV_SYS_STATUS_PREARM_CHECK
 )
 BATTERY_VOLTAGE_MV = 16_200
 _NAN_COVARIANCE = [math.nan] + [0.0] * 20
@@ -64,6 +64,7 @@ class AutopilotStatus:
     armable: bool
     crashed: bool
 
+    booted: bool = True  # past PX4's start-up: HEARTBEAT STANDBY, not UNINIT
 
 class Telemetry:
     """Builds each telemetry message; ``build(msg_id, ...)`` serves both the periodic streams and
@@ -113,6 +114,8 @@ class Telemetry:
         if status.crashed:
             system_status = mavlink.MAV_STATE_EMERGENCY
         elif status.armed:
+        elif not status.booted:
+            system_status = mavlink.MAV_STATE_UNINIT
             system_status = mavlink.MAV_STATE_ACTIVE
         else:
             system_status = mavlink.MAV_STATE_STANDBY
@@ -122,8 +125,8 @@ class Telemetry:
 
     def sys_status(self, status: AutopilotStatus) -> mavlink.MAVLink_message:
         health = SENSORS
-        if not status.armable:
-            health &= ~mavlink.MAV_SYS_STATUS_PREARM_CHECK
+        if status.armable:
+            health |= mavlink.MAV_SYS_STATUS_PREARM_CHECK
         if status.crashed:
             health &= ~mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
         return mavlink.MAVLink_sys_status_message(

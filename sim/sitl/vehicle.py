@@ -81,11 +81,16 @@ class SitlConfig:
     # north: 90 in ENU); 0 faces the goal side, as in training.
     heading_deg: float = 0.0
 
+    # PX4's start-up (UNINIT, then STANDBY, then the pre-arm checks passing) at this fraction of
+    # its recorded 4.25 s / 5.27 s (sim.sitl.commander): 1.0 as PX4, 0 ready at once.
+    boot_time_scale: float = 0.2
     def validate(self) -> None:
         """Raise ValueError naming the bad option."""
         if self.degrade not in DEGRADATIONS:
             raise ValueError(f"--degrade {self.degrade!r} must be one of {sorted(DEGRADATIONS)}")
         if not -360.0 <= self.heading_deg <= 360.0:
+        if not 0.0 <= self.boot_time_scale <= 1.0:
+            raise ValueError(f"--boot-time-scale {self.boot_time_scale} must be in [0, 1]")
             raise ValueError(f"--heading-deg {self.heading_deg} must be in [-360, 360]")
         check_level_seed(self.level, self.seed)
         if not 10.0 <= self.physics_hz <= 1000.0:
@@ -121,6 +126,7 @@ class SitlVehicle:
             params, self._home_enu_m, self._kin, t_s,
             offboard_allowed=self._faults.offboard_allowed if self._faults.refuses_offboard else None,
         )  # fmt: skip
+            boot_time_scale=config.boot_time_scale,
         self._modes_reported = 0
         self._server = None if config.stand_in else FrameServer(config.camera_port)
         self._endpoint = MavlinkEndpoint(config.mavlink_port)

@@ -49,7 +49,7 @@ def launch_sitl(tmp_path: Path) -> Iterator[Callable[..., SitlProcess]]:
     returns once its episode JSON exists."""
     launched: list[SitlProcess] = []
 
-    def launch(level: int = 0, seed: int = 1) -> SitlProcess:
+    def launch(level: int = 0, seed: int = 1, extra: tuple[str, ...] = ()) -> SitlProcess:
         run_dir = tmp_path / f"sitl{len(launched)}"
         run_dir.mkdir()
         episode_path, log_path = run_dir / "episode.json", run_dir / "sitl.log"
@@ -59,7 +59,7 @@ def launch_sitl(tmp_path: Path) -> Iterator[Callable[..., SitlProcess]]:
             proc = subprocess.Popen(
                 [sys.executable, "-m", "sim.sitl", "--mavlink-port", str(mavlink_port), "--camera-port", str(camera_port),
                  "--level", str(level), "--seed", str(seed), "--episode-json", str(episode_path),
-                 "--trace", str(run_dir / "trace.json")],
+                 "--trace", str(run_dir / "trace.json"), *extra],
                 stdout=log_file, stderr=subprocess.STDOUT,
             )  # fmt: skip
         sitl = SitlProcess(proc, mavlink_port, camera_port, {}, run_dir / "trace.json", log_path, t_launch_s, 0.0)

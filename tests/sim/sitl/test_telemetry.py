@@ -51,7 +51,9 @@ def test_heartbeat(telemetry):
 def test_sys_status_prearm_bit(telemetry):
     ok = telemetry.sys_status(_status())
     prearm = mavlink.MAV_SYS_STATUS_PREARM_CHECK
-    assert ok.onboard_control_sensors_health & prearm and ok.onboard_control_sensors_present & prearm
+    # As PX4 v1.16: healthy, but never present nor enabled (the recorded start-up fixture).
+    assert ok.onboard_control_sensors_health & prearm
+    assert not ok.onboard_control_sensors_present & prearm and not ok.onboard_control_sensors_enabled & prearm
     for bit in (mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO, mavlink.MAV_SYS_STATUS_SENSOR_GPS):
         assert ok.onboard_control_sensors_present & ok.onboard_control_sensors_enabled & ok.onboard_control_sensors_health & bit
     assert not telemetry.sys_status(_status(armable=False)).onboard_control_sensors_health & prearm

@@ -18,7 +18,7 @@ $(BIN)/.installed: pyproject.toml
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	# The local CPU build of torch first, so the extras' torch range installs nothing more.
 	$(BIN)/python -m pip install --quiet torch==2.13.0
-	$(BIN)/python -m pip install --quiet -e '.[sim,train,realsense,dev]'
+	$(BIN)/python -m pip install --quiet -e '.[sim,train,realsense,report,dev]'
 	touch $@
 
 install: $(BIN)/.installed

@@ -349,6 +349,28 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_report(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    from runtime.log.reader import ReplayError
+    from runtime.report import ReportUnavailableError, find_companions, write_report
+
+    summary, room = find_companions(args.log)
+    try:
+        if args.summary is not None:
+            summary = json.loads(Path(args.summary).read_text())
+        html_path, png_path = write_report(args.log, args.output, summary, room)
+    except (ReplayError, ReportUnavailableError) as err:
+        print(f"cmnav report: {err}", file=sys.stderr)
+        return 2
+    except (OSError, json.JSONDecodeError) as err:
+        print(f"cmnav report: {err}: check the paths given exist and the output directory is writable", file=sys.stderr)
+        return 2
+    print(f"report {html_path}\nplots {png_path}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="cmnav",
@@ -420,6 +442,20 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("--model", help="ONNX model to replay with (default: the one recorded in the log)")
     replay.add_argument("--json", action="store_true", help="also print the report, with per-step differences, as one JSON line")
     replay.set_defaults(func=_cmd_replay)
+
+    report = sub.add_parser(
+        "report",
+        help="draw a flight log as one HTML page and a PNG",
+        description="One self-contained HTML page (images inline) and a PNG of its plots from a flight log: "
+        "top view (with the room of a SITL flight), commanded vs achieved velocity per axis, step latency "
+        "histogram with p50/p99, invalid depth over time, watchdog events and verdicts, camera frames at the "
+        "start, each trip and the end.  The summary.json and episode.json that cmnav sitl writes beside its log "
+        "are read when present.  Needs the extra `report` (matplotlib).",
+    )
+    report.add_argument("log", help="MCAP flight log (cmnav fly / cmnav sitl)")
+    report.add_argument("-o", "--output", help="the HTML page to write (default: the log's name with .html); the PNG goes beside it")
+    report.add_argument("--summary", help="a JSON summary to show beside the log's figures (default: summary.json beside the log)")
+    report.set_defaults(func=_cmd_report)
 
     dataset = sub.add_parser(
         "dataset",

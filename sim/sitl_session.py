@@ -423,6 +423,11 @@ def merge_summary(
         summary["pose_stream"] = trace.get("pose_stream")
     if request.injections:
         summary["faults"] = fault_records(request.injections, trace, flight, t_kill_s)
+    from runtime.report import write_report_quietly  # matplotlib (the extra `report`), only where a report is drawn
+
+    # Before summary.json, which names it; a report that cannot be drawn only costs a warning.
+    report = write_report_quietly(summary["log"], summary, episode)
+    summary["report"] = None if report is None else str(report)
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
 
@@ -485,6 +490,7 @@ def run_sitl_cli(args: argparse.Namespace) -> int:
         f"watchdog trips {len(summary['watchdog_trips'])}"
         + (f", crash detected after {summary['crash_detect_ms']} ms" if "crash_detect_ms" in summary else "")
         + f"\nlog {summary['log']}\nplot {summary['plot']}"
+        + (f"\nreport {summary['report']}" if summary.get("report") else "")
     )
     for fault in summary.get("faults", []):
         print(f"fault {fault['kind']}@{fault['at_s']:g}: trip {fault['cause']} detected in {fault['detect_ms']} ms, "

@@ -40,7 +40,8 @@ SHARED_FROM_RUNTIME = (
 # Module -> runtime modules it may import besides the shared ones, with the reason.
 EXTRA_FROM_RUNTIME = {
     # `cmnav sitl` refuses a model the runtime would refuse before it starts any process.
-    "sim.sitl_session": ("runtime.model",),
+    # ... and writes the flight report beside the log it merged the summary of.
+    "sim.sitl_session": ("runtime.model", "runtime.report"),
 }
 
 

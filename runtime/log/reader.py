@@ -106,11 +106,21 @@ class FlightLogReader:
         """Frames (if ``topics`` has the camera topics) and steps (if it has the policy topics), in
         the order they were written.  Raises :class:`ReplayError` when the file is not a cmnav
         flight log; a cut or damaged end only stops the iteration (see :attr:`stopped_early`)."""
+        depth_pending: dict[int, np.ndarray] = {}
+        observation_pending: dict[tuple[int, int], dict] = {}
+        for topic, log_time, decoded in self.messages(topics):
+            item = self._assemble(topic, log_time, decoded, depth_pending, observation_pending)
+            if item is not None:
+                yield item
+
+    def messages(self, topics: tuple[str, ...]) -> Iterator[tuple[str, int, Any]]:
+        """Every message on ``topics`` as ``(topic, log_time_ns, decoded)`` in the order written:
+        JSON channels as dicts, image channels as foxglove ``RawImage`` protobufs; ``log_time_ns``
+        is Unix-epoch ns (subtract :attr:`offset_ns` for the recording host's monotonic clock).
+        Errors as :meth:`records`."""
         schemas: dict[int, Schema] = {}
         channels: dict[int, Channel] = {}
         decoders: dict[int, Callable[[bytes], Any]] = {}
-        depth_pending: dict[int, np.ndarray] = {}
-        observation_pending: dict[tuple[int, int], dict] = {}
         with open(self.path, "rb") as f:
             stream = StreamReader(f, validate_crcs=True, record_size_limit=MAX_RECORD_BYTES).records
             while True:
@@ -144,10 +154,7 @@ class FlightLogReader:
                         continue
                     if record.channel_id not in decoders:
                         decoders[record.channel_id] = self._decoder(channel, schemas.get(channel.schema_id))
-                    decoded = self._decode(decoders[record.channel_id], channel, record)
-                    item = self._assemble(channel.topic, record.log_time, decoded, depth_pending, observation_pending)
-                    if item is not None:
-                        yield item
+                    yield channel.topic, record.log_time, self._decode(decoders[record.channel_id], channel, record)
 
     def check_topics(self, required: tuple[str, ...], why: str) -> None:
         """After :meth:`records`: raise :class:`ReplayError` naming the ``required`` topics the log lacks."""
@@ -161,6 +168,13 @@ class FlightLogReader:
         if missing:
             where = f"; the log {self.stopped_early}" if self.stopped_early else ""
             raise ReplayError(f"{self.path} lacks the channel(s) {', '.join(missing)} ({why}){where}")
+
+    def image(self, raw: Any, topic: str) -> np.ndarray:
+        """A camera message from :meth:`messages` as an (H, W) array: depth float32 metres
+        (``/camera/depth``), gray uint8 (``/camera/gray``); :class:`ReplayError` for another layout."""
+        if topic == TOPIC_DEPTH:
+            return self._image(raw, "32FC1", np.dtype("<f4"), topic)
+        return self._image(raw, "mono8", np.dtype(np.uint8), topic)
 
     # ------------------------------------------------------------------ internals
 

@@ -1,7 +1,8 @@
 """Flight-log files of ``cmnav fly``: one per offboard episode, named by UTC start time, rotated.
 
-Only files this module names (``cmnav-YYYYmmddTHHMMSSZ-epNNN.mcap``) are ever deleted; anything
-else in the log directory is left alone.
+Only files this module names (``cmnav-YYYYmmddTHHMMSSZ-epNNN.mcap``) and their flight reports
+(the same name with ``.html`` / ``.png``) are ever deleted; anything else in the log directory is
+left alone.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from pathlib import Path
 log = logging.getLogger(__name__)
 
 LOG_GLOB = "cmnav-*-ep*.mcap"
+REPORT_SUFFIXES = (".html", ".png")  # a log's report beside it, deleted with it
 BYTES_PER_GB = 1_000_000_000
 
 
@@ -32,6 +34,8 @@ def rotate_logs(log_dir: Path, max_logs: int, max_total_gb: float) -> list[Path]
     while logs and (len(logs) > max_logs - 1 or total > max_total_gb * BYTES_PER_GB):
         oldest = logs.pop(0)
         oldest.unlink(missing_ok=True)
+        for companion in REPORT_SUFFIXES:  # its flight report (runtime.report), if one was drawn
+            oldest.with_suffix(companion).unlink(missing_ok=True)
         total -= sizes[oldest]
         deleted.append(oldest)
     if deleted:

@@ -56,7 +56,8 @@ from ..log.reader import ReplayError
 from ..log.recorder import Recorder, RecorderError
 from ..log.rotation import new_log_path, rotate_logs
 from ..model import ModelLoadError, PolicyModel, check_outputs_finite, resolve_providers
-from ..service.affinity import prepare_control_process
+from ..report import report_paths, write_report_quietly
+from ..service.affinity import prepare_control_process, run_as_background_thread
 from ..service.sdnotify import SystemdNotifier
 from ..service.shutdown import close_step, in_daemon_thread
 from ..service.signals import StopSignals, cancel_on_stop_signals, ignore_stop_signals
@@ -77,6 +78,7 @@ EXIT_CONFIG = 2
 # re-sending at the first HEARTBEAT that shows another mode, so the runtime streams them itself.
 PILOT_POLL_S = 0.1
 ALIVE_PERIOD_S = 0.25  # how often the waiting phases report the event loop alive
+REPORT_WAIT_S = 120.0  # at exit, how long the flight reports still being drawn are waited for
 
 
 class RecorderRefusal(OffboardWithheld):
@@ -126,6 +128,7 @@ class FieldProgram:
         self.flight = FlightPhase()  # what a stop signal interrupts (runtime.programs.stop)
         self.signals: StopSignals | None = None  # set by the entry point
         self._t_start_ns = time.monotonic_ns()
+        self._reports: list[asyncio.Future] = []  # flight reports being drawn (runtime.report)
 
     async def run(self) -> int:
         """Everything from model load to exit; returns the exit code (see the module docstring)."""
@@ -164,6 +167,8 @@ class FieldProgram:
         finally:
             await close_step("the flight loop and camera", loop.close)
             await close_step("MAVSDK", vehicle.close)
+            if self._reports:
+                await close_step("the flight reports", lambda: asyncio.gather(*self._reports), REPORT_WAIT_S)
 
     # ------------------------------------------------------------------ start-up
 
@@ -297,6 +302,21 @@ class FieldProgram:
         if abort_reason is not None:
             record["abort_reason"] = abort_reason
         self.summary["episodes"].append(record)
+        if recorder is not None:
+            self._start_report(recorder.path, record)
+
+    def _start_report(self, log_path: Path, record: dict) -> None:
+        """Draw the episode's report beside its log (``runtime.report``) in a background thread at
+        idle priority: the next episode may already be flying.  A failure is a warning, never the
+        flight's."""
+        html_path, _ = report_paths(log_path)
+
+        def draw() -> None:
+            run_as_background_thread()
+            if write_report_quietly(log_path, record) is not None:
+                record["report"] = str(html_path)
+
+        self._reports.append(asyncio.ensure_future(in_daemon_thread("flight-report", draw)))
 
     def _open_recorder(self, model: PolicyModel, episode: int) -> Recorder | None:
         """The episode's log, opened (and its first record written) before offboard.  If it cannot

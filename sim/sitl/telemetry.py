@@ -31,6 +31,7 @@ VEHICLE_UID = 0x434D4E4156534954  # "CMNAVSIT"
 CAPABILITIES = (
     mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
     | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+    | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_INT  # PX4 serves missions as MISSION_ITEM_INT (sim.sitl.mission)
     | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
     | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
 )
@@ -63,8 +64,8 @@ class AutopilotStatus:
     landed_state: int
     armable: bool
     crashed: bool
-
     booted: bool = True  # past PX4's start-up: HEARTBEAT STANDBY, not UNINIT
+
 
 class Telemetry:
     """Builds each telemetry message; ``build(msg_id, ...)`` serves both the periodic streams and
@@ -113,9 +114,9 @@ class Telemetry:
             base_mode |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
         if status.crashed:
             system_status = mavlink.MAV_STATE_EMERGENCY
-        elif status.armed:
         elif not status.booted:
             system_status = mavlink.MAV_STATE_UNINIT
+        elif status.armed:
             system_status = mavlink.MAV_STATE_ACTIVE
         else:
             system_status = mavlink.MAV_STATE_STANDBY

@@ -37,7 +37,8 @@ from .commander import Commander
 from .faults import VehicleFaults
 from .flight_tasks import VelocityCommand
 from .geodetic import GeodeticHome
-from .mavlink_endpoint import MavlinkEndpoint
+from .mavlink_endpoint import COMPONENT_ID, SYSTEM_ID, MavlinkEndpoint
+from .mission import MissionServer
 from .params import ParamTable
 from .px4 import OFFBOARD, POSCTL
 from .records import Trace, episode_record, write_json_atomic
@@ -80,17 +81,17 @@ class SitlConfig:
     # Heading at spawn, degrees counter-clockwise from the room's +x (PX4 SIH starts facing
     # north: 90 in ENU); 0 faces the goal side, as in training.
     heading_deg: float = 0.0
-
     # PX4's start-up (UNINIT, then STANDBY, then the pre-arm checks passing) at this fraction of
     # its recorded 4.25 s / 5.27 s (sim.sitl.commander): 1.0 as PX4, 0 ready at once.
     boot_time_scale: float = 0.2
+
     def validate(self) -> None:
         """Raise ValueError naming the bad option."""
         if self.degrade not in DEGRADATIONS:
             raise ValueError(f"--degrade {self.degrade!r} must be one of {sorted(DEGRADATIONS)}")
-        if not -360.0 <= self.heading_deg <= 360.0:
         if not 0.0 <= self.boot_time_scale <= 1.0:
             raise ValueError(f"--boot-time-scale {self.boot_time_scale} must be in [0, 1]")
+        if not -360.0 <= self.heading_deg <= 360.0:
             raise ValueError(f"--heading-deg {self.heading_deg} must be in [-360, 360]")
         check_level_seed(self.level, self.seed)
         if not 10.0 <= self.physics_hz <= 1000.0:
@@ -125,12 +126,14 @@ class SitlVehicle:
         self._commander = Commander(
             params, self._home_enu_m, self._kin, t_s,
             offboard_allowed=self._faults.offboard_allowed if self._faults.refuses_offboard else None,
-        )  # fmt: skip
             boot_time_scale=config.boot_time_scale,
+        )  # fmt: skip
         self._modes_reported = 0
         self._server = None if config.stand_in else FrameServer(config.camera_port)
         self._endpoint = MavlinkEndpoint(config.mavlink_port)
         telemetry = Telemetry(self._home_enu_m, geo, self._t_boot_ns)
+        # The mission store and its protocol, on the main link (the ground station's and the runtime's).
+        self._mission = MissionServer(self._endpoint.send, SYSTEM_ID, COMPONENT_ID)
         self._autopilot = Autopilot(
             self._endpoint, self._commander, params, telemetry, StreamScheduler(t_s, max_rate_hz=config.physics_hz),
             geo, self._t_boot_ns,
@@ -216,6 +219,8 @@ class SitlVehicle:
         for endpoint, autopilot in ((self._endpoint, self._autopilot), (self._pose_endpoint, self._pose_autopilot)):
             if endpoint in readable:
                 for msg in endpoint.receive():
+                    if endpoint is self._endpoint and self._mission.handle(msg, t_s):
+                        continue
                     autopilot.handle(msg, self._kin, t_s)
 
     def _tick(self, dt_s: float) -> None:
@@ -232,6 +237,7 @@ class SitlVehicle:
             self._commander.crash(t_s, hit)
             self._trace.record_collision(t_s, self._kin.pos_enu_m, hit)
         events = self._autopilot.publish(self._kin, t_s)
+        self._mission.update(t_s)
         if self._pose_autopilot is not None:
             self._pose_autopilot.publish(self._kin, t_s, events)
         self._trace.record_events(events)

@@ -52,6 +52,7 @@ _WATCHDOG_RANGES = {
     "hold_grace_s": (0.0, 5.0, "s", "the hover before Hold ends"),
     "brake_speed_m_s": (0.05, 1.0, "m/s", "a vehicle that is still moving is not stopped"),
     "brake_timeout_s": (0.0, 8.0, "s", "inside systemd's 15 s stop timeout"),
+    "offboard_loss_s": (0.1, 60.0, "s", "PX4's COM_OF_LOSS_T range"),
     "geofence_radius_m": (0.0, 200.0, "m", "a fence the vehicle can reach"),
     "altitude_max_m": (0.0, 120.0, "m", "a band below the usual 120 m ceiling"),
     "tracking_window_s": (CONTROL_PERIOD_S, 5.0, "s", "a stuck vehicle is caught within seconds"),
@@ -89,6 +90,10 @@ class WatchdogConfig:
     hold_grace_s: float = 1.0
     brake_speed_m_s: float = 0.2
     brake_timeout_s: float = 4.0
+    # PX4's COM_OF_LOSS_T: with the link down this long, the autopilot's offboard-loss failsafe
+    # takes the vehicle out of offboard; a mode change after such a gap is that failsafe
+    # (offboard_loss_failsafe), not a pilot.  Set it to the autopilot's COM_OF_LOSS_T.
+    offboard_loss_s: float = 1.0
     period_s: float = 0.02  # how often the watchdog task checks the time-based trips
     # Tracking (runtime.tracking): the measured velocity against the command passed through a
     # first-order lag of tracking_lag_s; an error (vehicle frame, m/s) above tracking_error_max_m_s

@@ -336,8 +336,8 @@ class FlightLoop:
                 )
             )
             trip = self.watchdog.tripped
-            if self.watchdog.pilot_took_over or (trip is not None and trip.hold_t_ns is not None):
-                return
+            if self.gate.released or (trip is not None and trip.hold_t_ns is not None):
+                return  # the pilot or the autopilot's failsafe has the vehicle, or Hold was sent
             if trip is not None and self.on_alive is not None:
                 self.on_alive()  # the response (hover, then Hold) is running: the loop is doing its job
             await asyncio.sleep(period_s)
@@ -364,7 +364,10 @@ class FlightLoop:
             self._step_started_ns = 0
 
     async def _step_inner(self, frame: Frame, episode: "_Episode", t_start: int) -> bool:
-        inputs = self._memory.inputs(self.vehicle.state(), self._goal_enu_m)
+        state = self.vehicle.state()
+        if await self.watchdog.check_telemetry(state, time.monotonic_ns()) is not None:
+            return False
+        inputs = self._memory.inputs(state, self._goal_enu_m)
         limit_s = self.config.watchdog.step_trip_ms / 1000.0 - (time.monotonic_ns() - t_start) / _NS_PER_S
         loop = asyncio.get_running_loop()
         try:

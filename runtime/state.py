@@ -87,6 +87,7 @@ class VehicleState:
     FLU.  Every ``t_*_ns`` is the receive time on this host's CLOCK_MONOTONIC, 0 = never received.
     """
 
+    t_estimate_us: int = 0  # the autopilot's time of the estimate below (ODOMETRY time_usec, its boot clock), 0 = none
     pos_enu_m: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
     vel_enu_m_s: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
     t_posvel_ns: int = 0

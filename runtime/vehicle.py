@@ -1,7 +1,11 @@
 """The autopilot link: MAVSDK-Python >= 4.1 (native asyncio API, no mavsdk_server).
 
 Telemetry (PX4 side: NED world, FRD body) arrives as MAVSDK subscriptions and is kept, with
-its receive time (``time.monotonic_ns``), in a cache; :meth:`Vehicle.state` gives a snapshot on
+its receive time (``time.monotonic_ns``), in a cache.  The state estimate (position, velocity,
+attitude, body rates) comes from one message, ODOMETRY (PX4 streams it at 30 Hz on the onboard
+link), ordered by its ``time_usec``: a duplicated or late datagram (a lossy radio, a MAVLink
+router) never moves the state back in time, and the four parts are always of one instant.
+MAVSDK's position/velocity and angular-rate messages carry no time, so they are not used. :meth:`Vehicle.state` gives a snapshot on
 the policy side (local ENU world, FLU body) as a :class:`runtime.state.VehicleState`.  Commands wrap MAVSDK's
 Action and Offboard plugins; every await that talks to the autopilot has a timeout and every
 failure raises a :class:`VehicleError` naming the command, the cause and what to check.
@@ -17,11 +21,13 @@ from typing import Awaitable, Callable, TypeVar
 import numpy as np
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk, MavsdkConnectionError, MavsdkError
 from mavsdk.asyncio.plugins.action import ActionAsync
+from mavsdk.asyncio.plugins.mission_raw import MissionRawAsync
 from mavsdk.asyncio.plugins.offboard import OffboardAsync
 from mavsdk.asyncio.plugins.offboard import VelocityBodyYawspeed as MavsdkVelocityBodyYawspeed
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 
 from .config import VehicleConfig
+from .programs.mission_goals import RawMissionItem
 from .contract import HOVER, VelocityBodyYawspeed
 from .contract.frames import ned_to_enu, quat_ned_frd_to_enu_flu
 from .service.shutdown import in_daemon_thread
@@ -41,6 +47,9 @@ T = TypeVar("T")
 
 # Height tolerance for "takeoff altitude reached" (m): PX4 itself calls a takeoff done within 10%.
 TAKEOFF_ALT_TOLERANCE_FRAC = 0.1
+# An estimate this far (µs) behind the kept one is not a late datagram (those are late by a link's
+# delay, well under a second) but an autopilot that rebooted: its clock starts again from zero.
+AUTOPILOT_REBOOT_BACKSTEP_US = 5_000_000
 
 class Vehicle:
     """One autopilot over MAVSDK: telemetry cache and commands with timeouts."""
@@ -51,10 +60,12 @@ class Vehicle:
         self._action: ActionAsync | None = None
         self._offboard: OffboardAsync | None = None
         self._telemetry: TelemetryAsync | None = None
+        self._mission_raw: MissionRawAsync | None = None
         self._tasks: list[asyncio.Task] = []
         self._fields: dict[str, object] = {}
         self._updated = asyncio.Event()
         self.setpoints_sent = 0
+        self.estimates_out_of_order = 0  # ODOMETRY messages not newer than the kept estimate, ignored
 
     # ------------------------------------------------------------------ connection
 
@@ -77,6 +88,7 @@ class Vehicle:
         self._action = ActionAsync(system)
         self._offboard = OffboardAsync(system)
         self._telemetry = TelemetryAsync(system)
+        self._mission_raw = MissionRawAsync(system)
         self._start_subscriptions()
         log.info("connected to the autopilot on %s", url)
 
@@ -89,8 +101,8 @@ class Vehicle:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
         self._tasks.clear()
-        handles = [h for h in (self._offboard, self._action, self._telemetry, self._mavsdk) if h is not None]
-        self._offboard = self._action = self._telemetry = self._mavsdk = None
+        handles = [h for h in (self._offboard, self._action, self._telemetry, self._mission_raw, self._mavsdk) if h is not None]
+        self._offboard = self._action = self._telemetry = self._mission_raw = self._mavsdk = None
 
         def destroy() -> None:  # plugins before the instance; each destroy() is idempotent and thread-safe
             for handle in handles:
@@ -104,9 +116,7 @@ class Vehicle:
     def _start_subscriptions(self) -> None:
         tel = self._require(self._telemetry)
         handlers: dict[str, tuple[Callable, Callable[[object], dict]]] = {
-            "posvel": (tel.subscribe_position_velocity_ned, _posvel_fields),
-            "attitude": (tel.subscribe_attitude_quaternion, _attitude_fields),
-            "angvel": (tel.subscribe_attitude_angular_velocity_body, _angvel_fields),
+            "estimate": (tel.subscribe_odometry, self._estimate_fields),
             "mode": (tel.subscribe_flight_mode, lambda m: {"flight_mode": m.name}),
             "armed": (tel.subscribe_armed, lambda a: {"armed": bool(a)}),
             "in_air": (tel.subscribe_in_air, lambda a: {"in_air": bool(a)}),
@@ -115,8 +125,7 @@ class Vehicle:
             "home": (tel.subscribe_home, _home_fields),
             "status_text": (tel.subscribe_status_text, self._status_text_fields),
         }
-        stamp_key = {"posvel": "t_posvel_ns", "attitude": "t_att_ns", "angvel": "t_angvel_ns",
-                     "mode": "t_mode_ns", "armed": "t_armed_ns", "health": "t_health_ns"}  # fmt: skip
+        stamp_key = {"mode": "t_mode_ns", "armed": "t_armed_ns", "health": "t_health_ns"}  # the estimate stamps itself
         for name, (subscribe, convert) in handlers.items():
             task = asyncio.create_task(self._follow(subscribe, convert, stamp_key.get(name)), name=f"telemetry_{name}")
             task.add_done_callback(_log_subscription_end)
@@ -125,11 +134,25 @@ class Vehicle:
     async def _follow(self, subscribe: Callable, convert: Callable[[object], dict], stamp_key: str | None) -> None:
         async for message in subscribe():
             fields = convert(message)
+            if not fields:
+                continue
             if stamp_key is not None:
                 fields[stamp_key] = time.monotonic_ns()
             self._fields.update(fields)
             self._updated.set()
             self._updated = asyncio.Event()
+
+    def _estimate_fields(self, odometry) -> dict:
+        """ODOMETRY -> position, velocity, attitude and rates with their receive time, or nothing
+        (no update) when it is not newer than the estimate kept: a duplicate, or a datagram
+        overtaken by a later one.  A time far behind is a rebooted autopilot: taken as new."""
+        t_us = int(odometry.time_usec)
+        kept_us = self._fields.get("t_estimate_us", 0)
+        if 0 < t_us <= kept_us and kept_us - t_us < AUTOPILOT_REBOOT_BACKSTEP_US:  # type: ignore[operator]
+            self.estimates_out_of_order += 1
+            return {}
+        now = time.monotonic_ns()
+        return {**_odometry_fields(odometry), "t_estimate_us": t_us, "t_posvel_ns": now, "t_att_ns": now, "t_angvel_ns": now}
 
     def _status_text_fields(self, message) -> dict:
         """A STATUSTEXT (MAVSDK ``StatusText``: ``type`` is a StatusTextType named as MAV_SEVERITY)
@@ -241,6 +264,29 @@ class Vehicle:
                 raise self._refused("set_velocity_body", err) from err
         self.setpoints_sent += 1
 
+    # ------------------------------------------------------------------ mission (the ground station's plan)
+
+    async def download_mission(self) -> list[RawMissionItem]:
+        """The mission uploaded to the autopilot (QGroundControl's plan), item by item as
+        MISSION_ITEM_INT carries it (MAVSDK mission_raw); empty when there is none."""
+        items = await self._command("mission download", self._require(self._mission_raw).download_mission())
+        return [RawMissionItem(int(i.seq), int(i.frame), int(i.command), float(i.x), float(i.y), float(i.z)) for i in items]
+
+    async def set_current_mission_item(self, seq: int) -> None:
+        """Make mission item ``seq`` the current one: the autopilot reports it (MISSION_CURRENT) to
+        every ground station, which shows the progress."""
+        await self._command(f"set current mission item {seq}", self._require(self._mission_raw).set_current_mission_item(int(seq)))
+
+    async def home_geodetic_deg(self) -> tuple[float, float]:
+        """Home (HOME_POSITION) as (latitude, longitude) in degrees: the origin mission waypoints
+        are placed from.  :class:`VehicleError` if the autopilot has not reported one."""
+        home = await self._command("home position", self._require(self._telemetry).home())
+        lat_deg, lon_deg = float(home.latitude_deg), float(home.longitude_deg)
+        if not (np.isfinite(lat_deg) and np.isfinite(lon_deg)) or (lat_deg == 0.0 and lon_deg == 0.0):
+            raise VehicleError(f"the autopilot reports no geodetic home (latitude {lat_deg}, longitude {lon_deg}): "
+                               "mission waypoints cannot be placed; wait for a GPS fix / home position and restart")  # fmt: skip
+        return lat_deg, lon_deg
+
     async def _command(self, what: str, awaitable: Awaitable[T]) -> T:
         try:
             return await asyncio.wait_for(awaitable, self.config.command_timeout_s)
@@ -285,6 +331,21 @@ def _attitude_fields(q) -> dict:
 def _angvel_fields(w) -> dict:
     # FRD body rates (p, q, r) -> FLU (p, -q, -r).
     return {"angvel_body_flu_rad_s": np.array([w.roll_rad_s, -w.pitch_rad_s, -w.yaw_rad_s])}
+
+
+def _odometry_fields(odometry) -> dict:
+    """PX4's ODOMETRY as PX4 v1.16 sends it (MAVSDK reports its frames as UNDEF): pose and
+    velocity in local NED (``child_frame_id`` MAV_FRAME_LOCAL_NED: EKF2's velocity frame),
+    quaternion FRD -> NED, rates in body FRD.  MAVSDK names the fields ``*_body`` whatever the
+    frame; recorded: tests/runtime/fixtures/px4_v1_16_odometry.json."""
+    pos = odometry.position_body
+    vel = odometry.velocity_body
+    return {
+        "pos_enu_m": ned_to_enu(np.array([pos.x_m, pos.y_m, pos.z_m])),
+        "vel_enu_m_s": ned_to_enu(np.array([vel.x_m_s, vel.y_m_s, vel.z_m_s])),
+        **_attitude_fields(odometry.q),
+        **_angvel_fields(odometry.angular_velocity_body),
+    }
 
 
 def _health_fields(h) -> dict:

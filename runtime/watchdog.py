@@ -63,6 +63,9 @@ class TripCause(str, Enum):
     TRACKING = "tracking"  # the vehicle does not follow its velocity commands
     ATTITUDE = "attitude"  # tilted past tilt_max_deg: flipped or tumbling
     VEHICLE_FAULT = "vehicle_fault"  # the autopilot says so: CRITICAL STATUSTEXT, disarmed in flight
+    # The autopilot left offboard by itself after the link was down longer than its
+    # COM_OF_LOSS_T (watchdog.offboard_loss_s): its failsafe has the vehicle, not a pilot.
+    OFFBOARD_LOSS_FAILSAFE = "offboard_loss_failsafe"
     # The simulated world says the vehicle touched something (SITL camera link, frame meta
     # "contact"): an external autopilot in SITL flies on through the room it cannot see.
     SIM_CONTACT = "sim_contact"
@@ -73,6 +76,7 @@ class Response(str, Enum):
     STOP_COMMANDING = "stop_commanding"
     ALREADY_TRIPPED = "already_tripped"
     HOLD = "hold"  # offboard never started: nothing to hover, Hold (stay in it) at once
+    VEHICLE_FAILSAFE = "vehicle_failsafe"  # the autopilot's failsafe has the vehicle: send nothing more
 
 
 @dataclass
@@ -164,6 +168,9 @@ class Watchdog:
         self._tracking_status: TrackingStatus | None = None
         self._t_posvel_seen_ns = 0
         self._t_att_seen_ns = 0
+        self._t_telemetry_seen_ns = 0
+        self._link_gap_ns = 0  # the longest gap in telemetry since supervision started
+        self._link_stale_seen = False
         self._tilt_over = OverBound()
         self._tilt_rad = 0.0
         self._status_seq_seen = 0
@@ -220,6 +227,9 @@ class Watchdog:
         self._tracking_status = None
         self._t_posvel_seen_ns = state.t_posvel_ns
         self._t_att_seen_ns = 0
+        self._t_telemetry_seen_ns = state.t_telemetry_ns
+        self._link_gap_ns = 0
+        self._link_stale_seen = False
         self._tilt_over.reset()
         # Only what the autopilot says from now on counts; it must be armed once to be disarmed.
         self._status_seq_seen = state.status_texts[-1].seq if state.status_texts else 0
@@ -268,6 +278,33 @@ class Watchdog:
         """Record each frame's raw invalid-depth fraction for the too-long-invalid check."""
         self._depth_invalid.update(t_capture_ns, invalid_frac > self.config.depth_invalid_frac_max)
 
+    def _note_link_gap(self, v: VehicleState, now_ns: int) -> None:
+        """Keep the longest telemetry gap of the episode; a gap counts once a check saw the
+        telemetry stale (older than ``telemetry_stale_ms``) before it resumed."""
+        if v.t_telemetry_ns > self._t_telemetry_seen_ns:
+            if self._link_stale_seen:
+                self._link_gap_ns = max(self._link_gap_ns, v.t_telemetry_ns - self._t_telemetry_seen_ns)
+            self._link_stale_seen = False
+            self._t_telemetry_seen_ns = v.t_telemetry_ns
+        elif self._t_telemetry_seen_ns and now_ns - self._t_telemetry_seen_ns > self.config.telemetry_stale_ms * _NS_PER_MS:
+            self._link_stale_seen = True
+
+    async def check_telemetry(self, v: VehicleState, now_ns: int) -> Trip | None:
+        """Trip (stale_telemetry) when the position/attitude is older than ``telemetry_stale_ms``.
+        Run by every tick and by the policy task before it computes a step, so no command is ever
+        computed from state the periodic check would already call stale."""
+        if not self._supervising or self.tripped is not None:
+            return None
+        limit_ns = int(self.config.telemetry_stale_ms * _NS_PER_MS)
+        t_ref = max(v.t_telemetry_ns, self._t0_ns)
+        if now_ns - t_ref <= limit_ns:
+            return None
+        return await self.trip(
+            TripCause.STALE_TELEMETRY,
+            f"position/attitude {(now_ns - v.t_telemetry_ns) / _NS_PER_MS:.0f} ms old > {self.config.telemetry_stale_ms:.0f} ms",
+            t_ref + limit_ns, now_ns,
+        )  # fmt: skip
+
     async def check_action(self, action: np.ndarray, t_step_started_ns: int, now_ns: int) -> Trip | None:
         """Before a command is sent: trip on a NaN/Inf action or a step past its trip limit."""
         if not self._supervising:
@@ -296,8 +333,15 @@ class Watchdog:
         if v.flight_mode == MODE_OFFBOARD and v.t_mode_ns >= self._t0_ns:
             self._offboard_seen = True
         trip: Trip | None = None
-        if self._offboard_seen and v.flight_mode != MODE_OFFBOARD and not self.pilot_took_over and not self._hold_sent():
-            trip = await self.trip(TripCause.PILOT_LEFT_OFFBOARD, f"flight mode is now {v.flight_mode}", v.t_mode_ns, now)
+        self._note_link_gap(v, now)
+        if self._offboard_seen and v.flight_mode != MODE_OFFBOARD and not self.gate.released and not self._hold_sent():
+            if self._link_gap_ns >= cfg.offboard_loss_s * _NS_PER_S:
+                trip = await self.trip(TripCause.OFFBOARD_LOSS_FAILSAFE,
+                                       f"flight mode is now {v.flight_mode} after the link was down "
+                                       f"{self._link_gap_ns / _NS_PER_S:.1f} s >= offboard_loss_s {cfg.offboard_loss_s:g} s",
+                                       v.t_mode_ns, now)  # fmt: skip
+            else:
+                trip = await self.trip(TripCause.PILOT_LEFT_OFFBOARD, f"flight mode is now {v.flight_mode}", v.t_mode_ns, now)
         if self.tripped is None:
             trip = await self._check_faults(inputs) or trip
         if self._hold_pending and not self.gate.released:
@@ -332,14 +376,8 @@ class Watchdog:
                 f"step running for {(now - inputs.t_step_started_ns) / _NS_PER_MS:.0f} ms > {cfg.step_trip_ms:.0f} ms",
                 inputs.t_step_started_ns + step_limit, now,
             )  # fmt: skip
-        tel_limit = int(cfg.telemetry_stale_ms * _NS_PER_MS)
-        t_tel_ref = max(v.t_telemetry_ns, self._t0_ns)
-        if now - t_tel_ref > tel_limit:
-            return await self.trip(
-                TripCause.STALE_TELEMETRY,
-                f"position/attitude {(now - v.t_telemetry_ns) / _NS_PER_MS:.0f} ms old > {cfg.telemetry_stale_ms:.0f} ms",
-                t_tel_ref + tel_limit, now,
-            )  # fmt: skip
+        if trip := await self.check_telemetry(v, now):
+            return trip
         if trip := await self._trip_if_held(self._depth_invalid, cfg.depth_invalid_max_s, TripCause.DEPTH_INVALID,
                                             lambda: f"depth invalid fraction > {cfg.depth_invalid_frac_max:.2f}", "", now):  # fmt: skip
             return trip
@@ -415,6 +453,8 @@ class Watchdog:
         """Record a trip and respond: hover now (Hold after the grace), or stop commanding."""
         if cause == TripCause.PILOT_LEFT_OFFBOARD:
             response = Response.STOP_COMMANDING
+        elif cause == TripCause.OFFBOARD_LOSS_FAILSAFE:
+            response = Response.VEHICLE_FAILSAFE
         elif self.tripped is None:
             response = Response.HOVER_THEN_HOLD
         else:
@@ -422,7 +462,7 @@ class Watchdog:
         trip = Trip(cause, detail, now_ns, max(0.0, (now_ns - t_fault_ns) / _NS_PER_MS), response)
         self.trips.append(trip)
         log.error("watchdog trip %s: %s (detected in %.1f ms) -> %s", cause.value, detail, trip.detect_ms, response.value)
-        if response == Response.STOP_COMMANDING:
+        if response in (Response.STOP_COMMANDING, Response.VEHICLE_FAILSAFE):
             self.gate.release()
             self._hold_pending = False
         elif response == Response.HOVER_THEN_HOLD:

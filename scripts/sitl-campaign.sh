@@ -46,40 +46,7 @@ fly() {  # fly model $1 on every level and seed into $2
 
 if [ -z "$VARIANTS" ]; then
   fly "$MODEL" "$OUT"
-  "$PYTHON" - "$OUT/summaries.jsonl" <<'PY'
-import collections, json, statistics, sys
-
-from training.stats import wilson_interval
-
-rows = [json.loads(line) for line in open(sys.argv[1]) if line.strip().startswith("{")]
-by_level = collections.defaultdict(list)
-all_trips = collections.Counter()
-for r in rows:
-    by_level[r["level"]].append(r)
-print("| level | flights | success % | 95 % interval | crash % | timeout % | other | time_s (success, median) | step p99 ms (median) | watchdog trips | trips without a crash | crashes caught <= 1.5 s | crash_detect_ms (median) | tracking error sustained, m/s (max, no crash) |")
-print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-for level, rs in sorted(by_level.items()):
-    n = len(rs)
-    count = collections.Counter(r["outcome"] for r in rs)
-    times = [r["time_s"] for r in rs if r["outcome"] == "success"]
-    p99 = [r["step_ms"]["p99"] for r in rs if (r.get("step_ms") or {}).get("p99") is not None]
-    other = n - count["success"] - count["crash"] - count["timeout"]
-    trips = sum(len(r.get("watchdog_trips", [])) for r in rs)
-    # A trip in a flight that did not crash is a false alarm unless a fault was injected.
-    false_trips = [t["cause"] for r in rs if r["outcome"] != "crash" for t in r.get("watchdog_trips", [])]
-    detect = [r["crash_detect_ms"] for r in rs if r["outcome"] == "crash" and r.get("crash_detect_ms") is not None]
-    caught = sum(ms <= 1500.0 for ms in detect)
-    # The largest velocity-tracking error a flight held for a whole tracking window: the margin to
-    # the watchdog's bound (tracking_error_max_m_s) in flights that did not crash.
-    peaks = [r["tracking_error_peak_m_s"] for r in rs if r["outcome"] != "crash" and r.get("tracking_error_peak_m_s") is not None]
-    low, high = wilson_interval(count["success"], n)
-    print(f"| {level} | {n} | {100 * count['success'] / n:.0f} | {100 * low:.0f}–{100 * high:.0f} | {100 * count['crash'] / n:.0f} | {100 * count['timeout'] / n:.0f} | "
-          f"{other} | {statistics.median(times) if times else float('nan'):.1f} | {statistics.median(p99) if p99 else float('nan'):.1f} | {trips} | "
-          f"{len(false_trips)} | {caught}/{count['crash']} | {statistics.median(detect) if detect else float('nan'):.0f} | "
-          f"{max(peaks) if peaks else float('nan'):.2f} |")
-    all_trips.update(t["cause"] for r in rs for t in r.get("watchdog_trips", []))
-print("watchdog trips by cause:", dict(all_trips) or "none")
-PY
+  "$PYTHON" "$(dirname "$0")/campaign-table.py" "$OUT/summaries.jsonl"
   exit 0
 fi
 

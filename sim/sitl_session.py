@@ -396,6 +396,7 @@ def merge_summary(
         "stage_ms": flight.get("stage_ms"),
         "watchdog_trips": trips,
         "tracking_error_peak_m_s": flight.get("tracking_error_peak_m_s"),
+        "brake": flight.get("brake"),
         "t_launch_to_offboard_s": flight.get("t_launch_to_offboard_s"),
         "wall_s": round(wall_s, 2),
         "level": request.level,

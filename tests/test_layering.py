@@ -42,6 +42,9 @@ EXTRA_FROM_RUNTIME = {
     # `cmnav sitl` refuses a model the runtime would refuse before it starts any process.
     # ... and writes the flight report beside the log it merged the summary of.
     "sim.sitl_session": ("runtime.model", "runtime.report"),
+    # The identification sequence flies through the runtime's own MAVSDK adapter: the command
+    # path the runtime flies, on PX4 and on our vehicle alike.
+    "sim.response.flight": ("runtime.vehicle",),
 }
 
 

@@ -86,6 +86,7 @@ class SimCameraSource:
                 await asyncio.sleep(self.reconnect_delay_s)
                 continue
             self.stats.connects += 1
+            frames_before = self.stats.frames
             log.info("camera link connected to %s:%d", LOOPBACK, self.port)
             try:
                 await self._read_frames(reader)
@@ -102,7 +103,12 @@ class SimCameraSource:
             finally:
                 self.stats.disconnects += 1
                 writer.close()
-            await asyncio.sleep(self.reconnect_delay_s)
+            # A link that was delivering frames is re-opened at once: a torn frame or a dropped
+            # connection then costs about one frame period, not reconnect_delay_s on top of it
+            # (which alone would come close to the watchdog's stale-frame limit).  A peer that
+            # fails before its first frame is retried after the delay, so it cannot spin us.
+            if self.stats.frames == frames_before:
+                await asyncio.sleep(self.reconnect_delay_s)
 
     async def _read_frames(self, reader: asyncio.StreamReader) -> None:
         while True:

@@ -17,8 +17,6 @@ from runtime.contract.frames import (
     euler_from_quat,
     flu_to_frd,
     quat_enu_flu_to_ned_frd,
-    quat_conjugate,
-    quat_rotate,
 )
 
 from .geodetic import GeodeticHome
@@ -187,13 +185,14 @@ class Telemetry:
         )  # fmt: skip
 
     def odometry(self, kin: Kinematics) -> mavlink.MAVLink_message:
-        """Pose in local NED, velocity in body FRD (as PX4 sends it)."""
+        """Pose and velocity in local NED (``child_frame_id`` MAV_FRAME_LOCAL_NED), as PX4 v1.16
+        sends it (recorded: tests/runtime/fixtures/px4_v1_16_odometry.json)."""
         q, rates = self._attitude_ned_frd(kin)
         pos = enu_to_ned(kin.pos_enu_m - self._home_enu_m)
-        vel_frd = flu_to_frd(quat_rotate(quat_conjugate(kin.quat_enu_flu), kin.vel_enu_m_s))
+        vel_ned = enu_to_ned(kin.vel_enu_m_s)
         return mavlink.MAVLink_odometry_message(
-            self._time_usec(kin.t_ns), mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_FRD,
-            *(float(v) for v in pos), [float(v) for v in q], *(float(v) for v in vel_frd),
+            self._time_usec(kin.t_ns), mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_NED,
+            *(float(v) for v in pos), [float(v) for v in q], *(float(v) for v in vel_ned),
             *(float(v) for v in rates), _NAN_COVARIANCE, _NAN_COVARIANCE, 0, mavlink.MAV_ESTIMATOR_TYPE_NAIVE, 100,
         )  # fmt: skip
 

@@ -411,3 +411,35 @@ def test_status_text_severities():
     for k in range(40):
         kept = append_status_text(kept, k, "INFO", f"m{k}")
     assert len(kept) == STATUS_TEXTS_KEPT and kept[-1].seq == 40 and kept[0].text == f"m{40 - STATUS_TEXTS_KEPT}"
+
+
+def test_offboard_left_after_a_link_gap_past_com_of_loss_t_is_the_autopilots_failsafe():
+    """The link (telemetry and, with it, the setpoints) was down longer than offboard_loss_s:
+    the mode change seen when it returns is the autopilot's offboard-loss failsafe, not a pilot."""
+
+    async def main():
+        rig = Rig()
+        t_last = T0 + 1_000 * MS
+        assert await rig.tick(T0 + 1_000 * MS, t_posvel_ns=t_last, t_att_ns=t_last) is None
+        stale = await rig.tick(T0 + 1_520 * MS, t_posvel_ns=t_last, t_att_ns=t_last)
+        assert stale.cause == TripCause.STALE_TELEMETRY
+        t_back = T0 + 2_300 * MS  # 1.3 s without telemetry
+        trip = await rig.tick(T0 + 2_310 * MS, t_posvel_ns=t_back, t_att_ns=t_back, flight_mode="POSCTL", t_mode_ns=t_back)
+        assert trip.cause == TripCause.OFFBOARD_LOSS_FAILSAFE and trip.response == Response.VEHICLE_FAILSAFE
+        assert rig.watchdog.gate.released and not rig.watchdog.pilot_took_over
+        assert ("hold", None) not in rig.vehicle.calls
+
+    run(main())
+
+
+def test_a_short_gap_then_a_mode_change_is_still_the_pilot():
+    async def main():
+        rig = Rig()
+        t_last = T0 + 1_000 * MS
+        assert await rig.tick(T0 + 1_000 * MS, t_posvel_ns=t_last, t_att_ns=t_last) is None
+        await rig.tick(T0 + 1_520 * MS, t_posvel_ns=t_last, t_att_ns=t_last)  # stale: tripped
+        t_back = T0 + 1_600 * MS  # 0.6 s gap < offboard_loss_s
+        trip = await rig.tick(T0 + 1_610 * MS, t_posvel_ns=t_back, t_att_ns=t_back, flight_mode="POSCTL", t_mode_ns=t_back)
+        assert trip.cause == TripCause.PILOT_LEFT_OFFBOARD
+
+    run(main())

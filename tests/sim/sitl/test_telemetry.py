@@ -1,7 +1,9 @@
 """Telemetry built from ground truth: NED/FRD conversions, home-relative positions, geodesy,
 status bits."""
 
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +15,8 @@ from runtime.contract.frames import quat_from_euler
 from sim.sitl.geodetic import GeodeticHome
 from sim.sitl.kinematics import Kinematics
 from sim.sitl.px4 import HOLD, OFFBOARD
+
+PX4_ODOMETRY = Path(__file__).parents[2] / "runtime" / "fixtures" / "px4_v1_16_odometry.json"
 from sim.sitl.telemetry import AutopilotStatus, Telemetry
 
 HOME = np.array([2.0, 3.0, 0.15])
@@ -77,10 +81,12 @@ def test_heading_and_attitude_in_ned_frd(telemetry):
     assert telemetry.global_position_int(kin).hdg == 9000
 
 
-def test_odometry_velocity_is_body_frd(telemetry):
-    odom = telemetry.odometry(_kin(vel=(0.0, 1.0, 0.0), rpy=(0.0, 0.0, math.pi / 2)))  # facing north, moving north
+def test_odometry_velocity_is_local_ned_as_px4_sends_it(telemetry):
+    odom = telemetry.odometry(_kin(vel=(0.0, 1.0, 0.0), rpy=(0.0, 0.0, 0.0)))  # facing east, moving north
     assert (odom.vx, odom.vy, odom.vz) == pytest.approx((1.0, 0.0, 0.0), abs=1e-9)
-    assert (odom.frame_id, odom.child_frame_id) == (mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_FRD)
+    recorded = json.loads(PX4_ODOMETRY.read_text())["pairs"][0]["odometry"]
+    assert (odom.frame_id, odom.child_frame_id) == (recorded["frame_id"], recorded["child_frame_id"])
+    assert odom.child_frame_id == mavlink.MAV_FRAME_LOCAL_NED
 
 
 def test_global_position_and_home(telemetry):

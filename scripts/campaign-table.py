@@ -1,0 +1,67 @@
+#!/usr/bin/env python3
+"""The outcome table of a campaign (scripts/sitl-campaign.sh, scripts/px4-campaign.sh) from its
+summaries.jsonl (one `cmnav sitl --json` summary per line): per level the success rate with its
+Wilson 95 % interval, crashes, time limits, the watchdog's trips (false ones: trips in flights that
+did not crash, nothing being injected), crashes caught within 1.5 s, the largest sustained
+tracking error, contacts after the goal (an autopilot that drifts on after the episode), the
+speed when the runtime commanded Hold, and the median tracking error p99 against the command.
+
+    python scripts/campaign-table.py runs/px4-campaign/default/summaries.jsonl
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import statistics
+import sys
+
+from training.stats import wilson_interval
+
+
+def _median(values: list) -> float:
+    return statistics.median(values) if values else float("nan")
+
+
+def contact_after_goal(r: dict) -> bool:
+    truth = r.get("ground_truth") or {}
+    contact, goal_t = truth.get("contact"), truth.get("goal_reached_t_s")
+    return bool(contact and goal_t is not None and contact["t_s"] >= goal_t)
+
+
+def main(path: str) -> int:
+    rows = [json.loads(line) for line in open(path) if line.strip().startswith("{")]
+    by_level = collections.defaultdict(list)
+    all_trips = collections.Counter()
+    for r in rows:
+        by_level[r["level"]].append(r)
+    print("| level | flights | success % | 95 % interval | crash % | timeout % | other | time_s (success, median) | "
+          "step p99 ms (median) | watchdog trips | trips without a crash | crashes caught <= 1.5 s | crash_detect_ms (median) | "
+          "tracking error sustained, m/s (max, no crash) | contact after goal | speed at Hold m/s (max) | tracking error p99 m/s (median) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for level, rs in sorted(by_level.items()):
+        n = len(rs)
+        count = collections.Counter(r["outcome"] for r in rs)
+        times = [r["time_s"] for r in rs if r["outcome"] == "success"]
+        p99 = [r["step_ms"]["p99"] for r in rs if (r.get("step_ms") or {}).get("p99") is not None]
+        other = n - count["success"] - count["crash"] - count["timeout"]
+        trips = sum(len(r.get("watchdog_trips", [])) for r in rs)
+        false_trips = [t["cause"] for r in rs if r["outcome"] != "crash" for t in r.get("watchdog_trips", [])]
+        detect = [r["crash_detect_ms"] for r in rs if r["outcome"] == "crash" and r.get("crash_detect_ms") is not None]
+        caught = sum(ms <= 1500.0 for ms in detect)
+        peaks = [r["tracking_error_peak_m_s"] for r in rs if r["outcome"] != "crash" and r.get("tracking_error_peak_m_s") is not None]
+        after_goal = sum(contact_after_goal(r) for r in rs)
+        hold_speeds = [r["brake"]["speed_at_hold_m_s"] for r in rs if (r.get("brake") or {}).get("speed_at_hold_m_s") is not None]
+        tracking = [r["tracking_error_m_s"]["p99"] for r in rs if (r.get("tracking_error_m_s") or {}).get("p99") is not None]
+        low, high = wilson_interval(count["success"], n)
+        print(f"| {level} | {n} | {100 * count['success'] / n:.0f} | {100 * low:.0f}–{100 * high:.0f} | {100 * count['crash'] / n:.0f} | "
+              f"{100 * count['timeout'] / n:.0f} | {other} | {_median(times):.1f} | {_median(p99):.1f} | {trips} | {len(false_trips)} | "
+              f"{caught}/{count['crash']} | {_median(detect):.0f} | {max(peaks) if peaks else float('nan'):.2f} | {after_goal} | "
+              f"{max(hold_speeds) if hold_speeds else float('nan'):.2f} | {_median(tracking):.2f} |")
+        all_trips.update(t["cause"] for r in rs for t in r.get("watchdog_trips", []))
+    print("watchdog trips by cause:", dict(all_trips) or "none")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1]))

@@ -1,0 +1,59 @@
+"""``python -m sim.response fly|fit``: fly the identification sequence on an autopilot, or fit
+the recorded runs and compare them (see the package doc)."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import sys
+from pathlib import Path
+
+from runtime.state import VehicleError
+
+from .flight import ENDINGS, fly_sequence
+from .identify import compare_table, identify
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m sim.response", description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    fly = sub.add_parser("fly", help="fly the identification sequence and write the run's JSON")
+    fly.add_argument("--url", default="udpin://127.0.0.1:14540", help="the autopilot's MAVSDK URL (default PX4 SITL's offboard link)")
+    fly.add_argument("--ending", choices=ENDINGS, default="brake", help="how the flight ends (default brake)")
+    fly.add_argument("--takeoff-alt-m", type=float, default=2.5, help="take-off height above home (m)")
+    fly.add_argument("-o", "--out", type=Path, required=True, help="the run's JSON")
+    fit = sub.add_parser("fit", help="identify each run's response and print them side by side")
+    fit.add_argument("runs", type=Path, nargs="+", metavar="NAME=RUN.json", help="runs written by `fly`, each named")
+    fit.add_argument("-o", "--out", type=Path, help="also write the identified parameters as JSON")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if args.command == "fly":
+        try:
+            run = asyncio.run(fly_sequence(args.url, args.ending, args.takeoff_alt_m))
+        except VehicleError as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 1
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(run))
+        print(f"run written to {args.out}: {len(run['samples']['t_s'])} samples, end {run['end']}")
+        return 0
+    identified = {}
+    for named in args.runs:
+        name, sep, path = str(named).partition("=")
+        if not sep:
+            name, path = Path(named).stem, str(named)
+        try:
+            identified[name] = identify(json.loads(Path(path).read_text()))
+        except (OSError, ValueError, KeyError) as err:
+            print(f"error: cannot identify {path}: {err}", file=sys.stderr)
+            return 2
+    print(compare_table(identified))
+    if args.out is not None:
+        args.out.write_text(json.dumps(identified, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -72,16 +72,26 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
               file=sys.stderr)  # fmt: skip
         return 2
     if args.policy is not None:
+        if args.depth is not None:
+            print("cmnav dataset: --depth applies to random poses, not to --policy flights", file=sys.stderr)
+            return 2
         return _flight_frames(args)
     if args.every_steps is not None or args.envs is not None:
         print("cmnav dataset: --every-steps and --envs apply to flights (--policy)", file=sys.stderr)
         return 2
+    if args.stereo_projector_off_fraction is not None and args.depth != "stereo":
+        print("cmnav dataset: --stereo-projector-off-fraction applies to --depth stereo", file=sys.stderr)
+        return 2
     from training.data.generate import DatasetSpec, generate_dataset
 
     levels = {} if args.levels is None else {"levels": tuple(args.levels)}
-    spec = DatasetSpec(count=args.count, seed=args.seed, **levels, **_given(args, "frames_per_room"))
+    spec = DatasetSpec(count=args.count, seed=args.seed, **levels,
+                       **_given(args, "frames_per_room", "depth", "stereo_projector_off_fraction"))  # fmt: skip
     manifest = generate_dataset(args.out, spec)
     print(f"wrote {manifest['frames']} gray/depth pairs from {manifest['rooms']} rooms to {args.out} (TartanAir V1 layout)")
+    if "stereo" in manifest:
+        print(f"with the simulated D455's stereo depth of each frame ({manifest['stereo']['invalid_depth_frac_mean']:.1%} "
+              f"invalid on average) in depth_stereo/")  # fmt: skip
     return 0
 
 
@@ -254,7 +264,7 @@ def _cmd_eval_policy(args: argparse.Namespace) -> int:
 
     config = PolicyEvalConfig(
         policy_dir=args.policy, encoder_dir=args.encoder, out_dir=args.out,
-        **_given(args, "levels", "conditions", "episodes", "batch_envs", "device", "seed", "precision"),
+        **_given(args, "levels", "conditions", "episodes", "batch_envs", "device", "seed", "rooms", "precision"),
     )  # fmt: skip
     result = evaluate_policy(config)
     print(format_table2(result))
@@ -478,6 +488,11 @@ def build_parser() -> argparse.ArgumentParser:
     dataset.add_argument("--encoder", metavar="CMWAE_DIR", help="the encoder the --policy was trained with")
     _config_option(dataset, "--every-steps", "training.policy.flight_frames:FlightFramesSpec.every_steps", type=int,
                    help="with --policy: keep one frame in this many along each flight")  # fmt: skip
+    _config_option(dataset, "--depth", "training.data.generate:DatasetSpec.depth", choices=["rendered", "stereo"],
+                   help="stereo: also store the simulated D455's stereo depth of each frame (depth_stereo/), the degraded "
+                   "input of `cmnav train cmwae --scheme stereo`")  # fmt: skip
+    _config_option(dataset, "--stereo-projector-off-fraction", "training.data.generate:DatasetSpec.stereo_projector_off_fraction",
+                   type=float, help="with --depth stereo: share of frames matched with the IR projector off")  # fmt: skip
     _config_option(dataset, "--envs", "training.policy.flight_frames:FlightFramesSpec.num_envs", type=int,
                    help="with --policy: flights flown at once")  # fmt: skip
     dataset.set_defaults(func=_cmd_dataset)
@@ -503,9 +518,11 @@ def build_parser() -> argparse.ArgumentParser:
     cmwae.add_argument("--data", required=True, nargs="+", metavar="DIR",
                        help="dataset directories; the train splits of all are trained on, the validation curve stays on "
                        "the first one's val split (e.g. --data runs/data/sim12k runs/data/flights)")  # fmt: skip
-    _config_option(cmwae, "--scheme", "training.cmwae.train:CmwaeTrainConfig.scheme", choices=["s1", "s2", "policy", "none"],
+    _config_option(cmwae, "--scheme", "training.cmwae.train:CmwaeTrainConfig.scheme",
+                   choices=["s1", "s2", "policy", "none", "stereo"],
                    help="training corruption (none: the clean-depth baseline; policy: the policy's 1-30 px patches at "
-                        "S2's coverages, for fine-tuning an encoder to what the student flies with)")  # fmt: skip
+                        "S2's coverages, for fine-tuning an encoder to what the student flies with; stereo: the "
+                        "simulated D455's depth a `cmnav dataset --depth stereo` dataset stores, clean depth the target)")  # fmt: skip
     cmwae.add_argument("--out", required=True, help="checkpoint directory (model.json + fp16 shards + train state)")
     _config_option(cmwae, "--modalities", "training.cmwae.train:CmwaeTrainConfig.modalities", type=_name_tuple,
                    choices=[("gray", "depth"), ("depth",)], metavar="{gray,depth | depth}",
@@ -666,14 +683,17 @@ def build_parser() -> argparse.ArgumentParser:
         description="Fly N seeded episodes per (condition, level) in the batched sim with the policy's mean "
         "action and no kicks; the same rooms for every condition and policy.  Conditions: clean, corrupted "
         "(the training patches fixed for the whole episode), projector-off (depth lost like a D455 without "
-        "its projector).  Each cell gives success / timeout / crash % and the success rate's Wilson 95 % "
-        "interval.",
+        "its projector), stereo and stereo-projector-off (the simulated D455: depth matched from rendered IR "
+        "images, projector on / off), patches-1-50px and patches-100px (Table I's 1-50 px and S2's 100 px "
+        "squares to 50 %, fixed for the episode).  Each cell gives success / timeout / crash % and the success "
+        "rate's Wilson 95 % interval.",
     )
     eval_policy.add_argument("--policy", required=True, help="policy checkpoint directory (cmnav train policy)")
     eval_policy.add_argument("--encoder", help="the encoder checkpoint the policy was trained with (none for a teacher)")
     _config_option(eval_policy, "--levels", "training.policy.evaluate:PolicyEvalConfig.levels", type=int_list, help="comma-separated")
     _config_option(eval_policy, "--conditions", "training.policy.evaluate:PolicyEvalConfig.conditions", type=_name_tuple,
-                   help="comma-separated subset of clean,corrupted,projector-off")  # fmt: skip
+                   help="comma-separated subset of clean,corrupted,projector-off,stereo,stereo-projector-off,"
+                   "patches-1-50px,patches-100px")  # fmt: skip
     _config_option(eval_policy, "--episodes", "training.policy.evaluate:PolicyEvalConfig.episodes", type=int, help="episodes per cell")
     _config_option(eval_policy, "--batch-envs", "training.policy.evaluate:PolicyEvalConfig.batch_envs", type=int, help="episodes flown at once")
     _config_option(eval_policy, "--device", "training.policy.evaluate:PolicyEvalConfig.device", help="cpu or cuda")
@@ -682,6 +702,8 @@ def build_parser() -> argparse.ArgumentParser:
     eval_policy.add_argument("--json", action="store_true", help="print the result as JSON on the last line")
     add_precision(eval_policy)
     eval_policy.set_defaults(func=_cmd_eval_policy)
+    eval_policy.add_argument("--rooms", choices=["validation", "test"],
+                             help="room set: validation (seed 0) to choose models on, test (seed 1) for published tables")  # fmt: skip
 
     pipeline = sub.add_parser(
         "pipeline",

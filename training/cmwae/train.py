@@ -18,7 +18,7 @@ from torch.utils.data.distributed import DistributedSampler
 from sim.degradation import SCHEMES, corrupt_depth, corrupt_with_scheme, evaluation_scheme, patch_masks
 
 from ..checkpoint import load_train_state, load_weights, read_card, save_train_state, save_weights
-from ..data.tartanair import GrayDepthDataset
+from ..data.tartanair import GrayDepthDataset, GrayDepthStereoDataset
 from ..distributed import DistInfo, all_reduce_mean, log_weights_digest, run_distributed, wall_budget_spent
 from ..fastpath import PRECISIONS, FastPath, FrozenEncoder, choose_fast_path
 from ..progress import Progress
@@ -29,7 +29,9 @@ from .model import MODALITIES, Cmwae, CmwaeConfig, make_config
 
 log = logging.getLogger(__name__)
 CHECKPOINT_KIND = "cmwae"
-CORRUPTION_SCHEMES = ("s1", "s2", "policy", "none")
+# stereo: the corrupted input is the simulated D455's depth the dataset stores for each frame
+# (`cmnav dataset --depth stereo`), the target its clean rendered depth.
+CORRUPTION_SCHEMES = ("s1", "s2", "policy", "none", "stereo")
 
 
 @dataclass(frozen=True)
@@ -123,8 +125,14 @@ def learning_rate(config: CmwaeTrainConfig, step: int, total_steps: int) -> floa
     return config.lr_final + 0.5 * (config.lr - config.lr_final) * (1.0 + math.cos(math.pi * progress))
 
 
-def _corrupt(depth: torch.Tensor, scheme: str, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """(corrupted depth, [B] bool: which images lost pixels)."""
+def _corrupt(depth: torch.Tensor, scheme: str, generator: torch.Generator,
+             stereo: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """(corrupted depth, [B] bool: which images lost pixels); ``stereo``: the stored stereo depth
+    of the batch (scheme "stereo"), every image of which is degraded."""
+    if scheme == "stereo":
+        if stereo is None:
+            raise ValueError("scheme 'stereo' needs the stereo depth of each frame: a `cmnav dataset --depth stereo` dataset")
+        return stereo, torch.ones(depth.shape[0], dtype=torch.bool)
     if scheme == "none":
         return depth, torch.zeros(depth.shape[0], dtype=torch.bool)
     corrupted, masks = corrupt_with_scheme(depth, SCHEMES[scheme], generator)
@@ -138,13 +146,29 @@ def validation_mse(model: Cmwae, loader: DataLoader, device: torch.device, cover
     model.eval()
     generator = torch.Generator().manual_seed(seed)
     total, count = 0.0, 0
-    for gray, depth in loader:
+    for gray, depth, *_ in loader:
         if count >= max_images:
             break
         masks = patch_masks(torch.full((depth.shape[0],), coverage), evaluation_scheme(coverage), generator)
         corrupted = corrupt_depth(depth, masks)
         with path.autocast(device):
             _, recon = model(path.image(gray.to(device)), path.image(corrupted.to(device)))
+        total += float(((recon.float().cpu() - depth) ** 2).mean(dim=(1, 2, 3)).sum())
+        count += depth.shape[0]
+    model.train()
+    return total / max(count, 1)
+
+
+@torch.no_grad()
+def validation_stereo_mse(model: Cmwae, loader: DataLoader, device: torch.device, max_images: int, path: FastPath) -> float:
+    """Mean reconstruction MSE on up to max_images with their stored stereo depth as the input."""
+    model.eval()
+    total, count = 0.0, 0
+    for gray, depth, stereo in loader:
+        if count >= max_images:
+            break
+        with path.autocast(device):
+            _, recon = model(path.image(gray.to(device)), path.image(stereo.to(device)))
         total += float(((recon.float().cpu() - depth) ** 2).mean(dim=(1, 2, 3)).sum())
         count += depth.shape[0]
     model.train()
@@ -160,8 +184,9 @@ def train_cmwae(config: CmwaeTrainConfig) -> Path:
 def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Path:
     out = Path(config.out_dir)
     torch.manual_seed(config.seed)
-    train_set = ConcatDataset([GrayDepthDataset(d, "train") for d in (config.data_dir, *config.extra_data_dirs)])
-    val_set = GrayDepthDataset(config.data_dir, "val")
+    dataset = GrayDepthStereoDataset if config.scheme == "stereo" else GrayDepthDataset
+    train_set = ConcatDataset([dataset(d, "train") for d in (config.data_dir, *config.extra_data_dirs)])
+    val_set = dataset(config.data_dir, "val")
     sampler = DistributedSampler(train_set, seed=config.seed) if info.enabled else None
     loader_generator = torch.Generator().manual_seed(config.seed)
     loader = DataLoader(train_set, batch_size=config.batch_size, shuffle=sampler is None, sampler=sampler,
@@ -210,6 +235,8 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
         val = {f"val/mse_{int(c * 100)}pct": validation_mse(model, val_loader, device, c, config.val_images, config.seed, path)
                for c in (0.0, 0.5)}  # fmt: skip
         val["val/mse_ratio_50_over_0"] = val["val/mse_50pct"] / max(val["val/mse_0pct"], 1e-12)
+        if config.scheme == "stereo":
+            val["val/mse_stereo"] = validation_stereo_mse(model, val_loader, device, config.val_images, path)
         if writer is not None:
             writer.add_scalars(step, val)
             record_val_point(out, step, val)
@@ -223,10 +250,10 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
     while step < total_steps:
         if sampler is not None:
             sampler.set_epoch(epoch)
-        for gray, depth in loader:
+        for gray, depth, *stereo in loader:
             if step >= total_steps:
                 break
-            corrupted, was_corrupted = _corrupt(depth, config.scheme, corruption_generator)
+            corrupted, was_corrupted = _corrupt(depth, config.scheme, corruption_generator, *stereo)
             gray, depth, corrupted = path.image(gray.to(device)), depth.to(device), path.image(corrupted.to(device))
             with path.autocast(device):
                 z, recon = ddp_model(gray, corrupted)

@@ -65,6 +65,19 @@ def v1_paths(root: Path, env: str, difficulty: str, trajectory: int, index: int)
     return base / V1.image_dir / f"{index:06d}{V1.image_suffix}", base / V1.depth_dir / f"{index:06d}{V1.depth_suffix}"
 
 
+# `cmnav dataset --depth stereo` stores the simulated D455's depth of each frame beside the clean
+# one (V1 layout only): ENV/Easy/P000/depth_stereo/000000_stereo_depth.npy, float32 metres at the
+# sensor's matching resolution, 0 = invalid.
+STEREO_DEPTH_DIR = "depth_stereo"
+STEREO_DEPTH_SUFFIX = "_stereo_depth.npy"
+
+
+def stereo_depth_path(sample: Sample) -> Path:
+    """Where the stereo depth of a V1 sample lives (it may not exist)."""
+    frame = sample.image_path.name[: -len(V1.image_suffix)]
+    return sample.image_path.parent.parent / STEREO_DEPTH_DIR / f"{frame}{STEREO_DEPTH_SUFFIX}"
+
+
 def find_samples(root: str | Path) -> list[Sample]:
     """Every gray/depth pair under ``root`` in either layout, sorted by trajectory and frame."""
     root = Path(root)
@@ -178,3 +191,25 @@ class GrayDepthDataset(Dataset):
         if opencv() is None:  # the contract's functions resize with cv2; its torch twin does not
             return preprocess_gray_batch(torch.from_numpy(gray_u8)[None]), preprocess_depth_batch(torch.from_numpy(depth_m)[None])
         return torch.from_numpy(preprocess_gray(gray_u8)).unsqueeze(0), torch.from_numpy(preprocess_depth(depth_m)).unsqueeze(0)
+
+
+class GrayDepthStereoDataset(GrayDepthDataset):
+    """Preprocessed (gray, clean depth, stereo depth) [1, 224, 224] float32 triples of one split
+    of a `cmnav dataset --depth stereo` dataset: the stereo depth is the degraded input, the clean
+    rendered depth the target."""
+
+    def __init__(self, root: str | Path, split: str = "train", val_fraction: float = 0.1, test_fraction: float = 0.1) -> None:
+        super().__init__(root, split, val_fraction, test_fraction)
+        missing = next((s for s in self.samples if s.layout != "v1" or not stereo_depth_path(s).is_file()), None)
+        if missing is not None:
+            raise DatasetError(
+                f"{root} has no stereo depth for {missing.image_path} (expected {stereo_depth_path(missing)}): "
+                f"render the dataset with `cmnav dataset --depth stereo --out {root} ...`"
+            )
+
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        gray, depth = super().__getitem__(i)
+        stereo_m = read_depth_m(stereo_depth_path(self.samples[i]), "v1")
+        if opencv() is None:
+            return gray, depth, preprocess_depth_batch(torch.from_numpy(stereo_m)[None])
+        return gray, depth, torch.from_numpy(preprocess_depth(stereo_m)).unsqueeze(0)

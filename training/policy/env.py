@@ -42,6 +42,7 @@ from sim.degradation import RL_TRAINING, PatchScheme, ProjectorOffModel, corrupt
 from sim.dynamics import DynamicsParams, QuadrotorDynamics, QuadState
 from sim.preprocess_torch import preprocess_depth_batch, preprocess_gray_batch
 from sim.render import RenderOutput, render
+from sim.sensor import D455, StereoConfig, StereoDepthSensor
 from sim.rotations import quat_from_euler, quat_multiply, rotate_about_z
 from sim.world import WorldBatch, WorldConfig, env_seed, make_worlds
 
@@ -51,7 +52,9 @@ from .contract_torch import action_to_velocity_flu_batch, observation_state_batc
 
 RUNNING, SUCCESS, CRASH, TIMEOUT = 0, 1, 2, 3
 OUTCOMES = {SUCCESS: "success", CRASH: "crash", TIMEOUT: "timeout"}
-CORRUPTION_MODES = ("none", "train", "episode", "projector-off")
+CORRUPTION_MODES = ("none", "train", "episode", "projector-off", "stereo", "stereo-projector-off")
+# The modes whose depth is the simulated D455's stereo depth (sim.sensor), projector on or off.
+STEREO_MODES = {"stereo": True, "stereo-projector-off": False}
 LEVEL_SAMPLING = ("curriculum", "uniform")
 
 
@@ -111,10 +114,13 @@ class NavEnvConfig:
     physics_substeps: int = 7  # per control period: 15 Hz x 7 = 105 Hz, like the SITL's 100 Hz
     # none: clean depth; train: each step a random subset of envs (corrupted_env_fraction) gets
     # fresh 1-30 px patches to 50%; episode: every env keeps one such mask for its whole episode
-    # (Table II "corrupted"); projector-off: sim.degradation.ProjectorOffModel on every frame.
+    # (Table II "corrupted"); projector-off: sim.degradation.ProjectorOffModel on every frame;
+    # stereo / stereo-projector-off: depth matched from rendered IR images by the simulated D455
+    # (sim.sensor, ``stereo`` with its projector on / off), in place of the rendered depth.
     corruption: str = "train"
     corrupted_env_fraction: float = 0.5
     corruption_scheme: PatchScheme = RL_TRAINING
+    stereo: StereoConfig = D455  # the stereo modes' sensor (their mode sets its projector)
     # With any mode: this fraction of episodes see depth as a D455 without its projector instead.
     projector_off_episode_fraction: float = 0.0
     # curriculum: every new episode at the curriculum's level; uniform: each at a level drawn
@@ -306,8 +312,12 @@ class NavEnv:
         self.camera = CameraModel()
         self.dynamics = QuadrotorDynamics(config.dynamics)
         self.projector_off = ProjectorOffModel()
+        self.stereo_sensor = None
+        if config.corruption in STEREO_MODES:
+            self.stereo_sensor = StereoDepthSensor(replace(config.stereo, projector_on=STEREO_MODES[config.corruption]))
         self.generator = torch.Generator().manual_seed(seed)
-        self.stage_seconds = {"render": 0.0, "preprocess": 0.0, "encode": 0.0, "physics": 0.0, "privileged": 0.0}
+        self.stage_seconds = {"render": 0.0, "stereo": 0.0, "preprocess": 0.0, "encode": 0.0, "physics": 0.0,
+                              "privileged": 0.0}  # fmt: skip
         n = self.num_envs
         self._slots = max(1, config.curriculum.max_level if fixed_level is None else fixed_level)
         self.episode_index = torch.zeros(n, dtype=torch.long)
@@ -399,7 +409,12 @@ class NavEnv:
         self.last_render = out  # the clean frames of the current observation (camera resolution, before any corruption)
         t0 = self._timed("render", t0)
         depth_m = out.depth_m
-        if cfg.corruption == "projector-off":
+        if self.stereo_sensor is not None:
+            # The D455's own depth at its matching resolution (the gray camera's rays, twice the
+            # pixels): the contract's preprocessing resizes it to 224 x 224 like any camera's.
+            depth_m = self.stereo_sensor.measure(self.world, cam_pos, cam_quat, self.generator).depth_m
+            t0 = self._timed("stereo", t0)
+        elif cfg.corruption == "projector-off":
             depth_m, _ = self.projector_off.apply(depth_m, out.gray_u8, self.camera.fx_px, self.generator)
         elif bool(self.projector_off_episode.any()):
             off = self.projector_off_episode.nonzero().squeeze(1).to(self.device)

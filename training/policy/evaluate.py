@@ -4,7 +4,15 @@ the mean action, no kicks, and the same seeded rooms for every condition and pol
 
 Conditions: ``clean`` (full depth), ``corrupted`` (the training patches, 1-30 px to 50 %, fixed
 for the whole episode, as in the paper), ``projector-off`` (``sim.degradation.ProjectorOffModel``
-on every frame: depth lost on low-texture, dark, oblique or far surfaces).
+on every frame: depth lost on low-texture, dark, oblique or far surfaces), ``stereo`` and
+``stereo-projector-off`` (the simulated D455 of ``sim.sensor``: depth matched from rendered IR
+images, its projector on / off), and the out-of-distribution patches, fixed for the episode:
+``patches-1-50px`` (Table I's 1-50 px squares to 50 %) and ``patches-100px`` (S2's 100 px
+squares, to 50 %).
+
+Rooms: ``validation`` (seed 0) for choosing models, ``test`` (seed 1) for the tables we publish;
+table2.json names which, with the fingerprints of the policy and the encoder measured and the
+encoder's precision path.
 """
 
 from __future__ import annotations
@@ -18,17 +26,31 @@ import torch
 from torch import nn
 
 from runtime.contract.constants import STATE_DIM
+from sim.degradation import evaluation_scheme
 from sim.plot import plot_top_view
 
+from ..checkpoint import checkpoint_fingerprint
 from ..cmwae.train import load_cmwae
 from ..fastpath import FrozenEncoder, check_action_parity
 from ..progress import Progress
 from ..stats import wilson_interval
-from .env import CRASH, OUTCOMES, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder, parity_frames
+from .env import (CRASH, OUTCOMES, STEREO_MODES, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder,
+                  parity_frames)  # fmt: skip
 from .network import TEACHER, check_trained_on, load_policy
 
 log = logging.getLogger(__name__)
-CONDITIONS = {"clean": "none", "corrupted": "episode", "projector-off": "projector-off"}
+# Table II's conditions: the NavEnvConfig fields each sets (everything else as in training).
+CONDITIONS: dict[str, dict] = {
+    "clean": {"corruption": "none"},
+    "corrupted": {"corruption": "episode"},
+    "projector-off": {"corruption": "projector-off"},
+    "stereo": {"corruption": "stereo"},
+    "stereo-projector-off": {"corruption": "stereo-projector-off"},
+    "patches-1-50px": {"corruption": "episode", "corruption_scheme": evaluation_scheme(0.5)},
+    "patches-100px": {"corruption": "episode", "corruption_scheme": evaluation_scheme(0.5, (100, 100))},
+}
+# Room sets: models are chosen on validation rooms; published tables use test rooms no choice saw.
+ROOMS = {"validation": 0, "test": 1}
 
 
 @dataclass(frozen=True)
@@ -40,15 +62,31 @@ class PolicyEvalConfig:
     episodes: int = 100
     batch_envs: int = 64  # episodes flown at once
     device: str = "cpu"
-    seed: int = 0
+    seed: int = 0  # seed of the rooms; ``rooms`` names a set instead
+    rooms: str | None = None  # "validation" (seed 0) or "test" (seed 1)
     out_dir: str | None = None  # plots and table2.json (default POLICY/eval)
     plots_per_cell: int = 2
     precision: str = "auto"  # the frozen encoder's fast path (training.fastpath)
+
+    @property
+    def room_seed(self) -> int:
+        return self.seed if self.rooms is None else ROOMS[self.rooms]
+
+    @property
+    def room_set(self) -> str:
+        """What table2.json says about the rooms: the named set, or the bare seed."""
+        named = {seed: name for name, seed in ROOMS.items()}
+        return self.rooms or f"seed {self.seed}" + (f" (the {named[self.seed]} rooms)" if self.seed in named else "")
 
     def validate(self) -> None:
         unknown = [c for c in self.conditions if c not in CONDITIONS]
         if unknown:
             raise ValueError(f"unknown conditions {unknown}: choose from {sorted(CONDITIONS)}")
+        if self.rooms is not None and self.rooms not in ROOMS:
+            raise ValueError(f"rooms={self.rooms!r} must be one of {sorted(ROOMS)} (validation: seed 0, for choosing; "
+                             f"test: seed 1, for reporting)")  # fmt: skip
+        if self.rooms is not None and self.seed not in (0, ROOMS[self.rooms]):
+            raise ValueError(f"rooms={self.rooms!r} is seed {ROOMS[self.rooms]}, but seed={self.seed} was given: give one of them")
         if self.episodes < 1 or self.batch_envs < 1:
             raise ValueError("episodes and batch_envs must be >= 1")
         if not self.levels or min(self.levels) < 0:
@@ -60,7 +98,7 @@ def table2_env(encoder, level: int, condition: str, num_envs: int, device, seed:
     """The env of Table II's episodes ``first_episode`` .. ``first_episode + num_envs - 1`` at
     ``level`` under ``condition``: no kicks, no reset after an episode ends.  Its rooms depend on
     (seed, level, episode number), not on the condition or policy."""
-    config = NavEnvConfig(num_envs=num_envs, corruption=CONDITIONS[condition], kick_probability=0.0,
+    config = NavEnvConfig(num_envs=num_envs, kick_probability=0.0, **CONDITIONS[condition],
                           curriculum=CurriculumConfig(start_level=level, min_level=level, max_level=level))  # fmt: skip
     return NavEnv(config, encoder, device, seed=seed * 100_003 + level * 1009 + first_episode, fixed_level=level,
                   auto_reset=False, teacher_obs=teacher_obs)  # fmt: skip
@@ -136,7 +174,7 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
         for level in config.levels:
             counts = {SUCCESS: 0, TIMEOUT: 0, CRASH: 0}
             for k, (code, path, world) in enumerate(
-                fly_episodes(policy, encoder, level, condition, config.episodes, config.batch_envs, device, config.seed)
+                fly_episodes(policy, encoder, level, condition, config.episodes, config.batch_envs, device, config.room_seed)
             ):
                 counts[code] += 1
                 if k < config.plots_per_cell:
@@ -152,10 +190,16 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
                 "crash_pct": 100.0 * counts[CRASH] / total, "success_ci95_pct": [100.0 * low, 100.0 * high],
             })  # fmt: skip
     progress.close()
+    stereo = {c: asdict(NavEnvConfig().stereo) | {"projector_on": CONDITIONS[c]["corruption"] == "stereo"}
+              for c in conditions if CONDITIONS[c]["corruption"] in STEREO_MODES}  # fmt: skip
     result = {
         "policy": str(config.policy_dir), "role": card.get("meta", {}).get("role", "policy"),
+        "policy_fingerprint": checkpoint_fingerprint(config.policy_dir),
         "encoder": config.encoder_dir, "encoder_fingerprint": fingerprint,
-        "fast_path": {"encoder": getattr(getattr(encoder, "path", None), "name", "fp32"), "bf16_action_error": action_parity},
+        "rooms": config.room_set, "room_seed": config.room_seed,
+        "fast_path": {"encoder": getattr(getattr(encoder, "path", None), "name", "fp32"), "bf16_action_error": action_parity,
+                      "precision_requested": config.precision},
+        "stereo_sensor": stereo,
         "policy_env_steps": card.get("step"), "config": asdict(replace(config, out_dir=str(out))), "cells": cells,
     }  # fmt: skip
     (out / "table2.json").write_text(json.dumps(result, indent=2))

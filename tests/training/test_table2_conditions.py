@@ -1,0 +1,124 @@
+"""Table II's sensor and out-of-distribution conditions (stereo, stereo-projector-off,
+patches-1-50px, patches-100px) in the batched env and in `evaluate_policy`, and its room sets
+(validation for choosing, test for reporting), on a tiny encoder and an untrained tiny policy."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+
+import pytest
+import torch
+
+from sim.preprocess_torch import preprocess_depth_batch
+from training.checkpoint import checkpoint_fingerprint, save_weights
+from training.cmwae.model import Cmwae, make_config
+from training.policy.evaluate import CONDITIONS, ROOMS, PolicyEvalConfig, evaluate_policy, table2_env
+from training.policy.network import POLICY_SIZES, ActorCritic
+
+pytestmark = pytest.mark.timeout(300)
+NEW_CONDITIONS = ("stereo", "stereo-projector-off", "patches-1-50px", "patches-100px")
+
+
+@pytest.fixture(scope="module")
+def encoder():
+    torch.manual_seed(0)
+    return Cmwae(make_config("tiny")).encoder.eval()
+
+
+def _depth_and_clean(env):
+    """The env's (preprocessed, conditioned) depth [N, 224, 224] and the clean depth of the same frames."""
+    depth = env.render_inputs()[1][:, 0]
+    return depth, preprocess_depth_batch(env.last_render.depth_m)
+
+
+def _shortest_masked_run_px(invalid: torch.Tensor) -> int:
+    """The shortest horizontal run of invalid pixels in a [224, 224] mask."""
+    shortest = invalid.shape[-1]
+    for row in invalid:
+        padded = torch.cat([torch.tensor([False]), row, torch.tensor([False])]).int()
+        edges = padded.diff()
+        starts, ends = (edges == 1).nonzero().squeeze(1), (edges == -1).nonzero().squeeze(1)
+        if len(starts):
+            shortest = min(shortest, int((ends - starts).min()))
+    return shortest
+
+
+def test_stereo_conditions_give_matched_depth_that_agrees_with_the_clean_depth(encoder):
+    invalid = {}
+    for condition in ("stereo", "stereo-projector-off"):
+        env = table2_env(encoder, level=3, condition=condition, num_envs=2, device="cpu", seed=ROOMS["validation"])
+        env.reset()
+        env.step(torch.zeros(2, 3))
+        depth, clean = _depth_and_clean(env)
+        valid = depth > 0
+        # The D455's left band (no overlap with the right imager) at least, never everything.
+        invalid[condition] = 1.0 - float(valid.float().mean())
+        assert 0.08 < invalid[condition] < 0.9
+        # Where it reports depth, it is the scene's depth (normalised by 10 m): mostly within 5 %.
+        relative = ((depth - clean).abs() / clean.clamp_min(1e-3))[valid & (clean < 1.0)]
+        assert float((relative < 0.05).float().mean()) > 0.7, condition
+        assert not torch.equal(depth, clean)
+        assert env.stage_seconds["stereo"] > 0.0
+    assert invalid["stereo-projector-off"] > invalid["stereo"] + 0.03, invalid  # same rooms, same poses
+
+
+@pytest.mark.parametrize(("condition", "sides_px"), [("patches-1-50px", (1, 50)), ("patches-100px", (100, 100))])
+def test_out_of_distribution_patches_cover_half_the_image_and_stay_for_the_episode(encoder, condition, sides_px):
+    env = table2_env(encoder, level=2, condition=condition, num_envs=3, device="cpu", seed=ROOMS["validation"])
+    env.reset()
+    first = env.render_inputs()[1][:, 0] == 0
+    env.step(torch.zeros(3, 3))
+    second = env.render_inputs()[1][:, 0] == 0
+    assert torch.equal(first, second)  # fixed per episode
+    for mask in first:
+        assert 0.5 - 1e-6 <= float(mask.float().mean()) <= 0.5 + (sides_px[1] / 224) ** 2
+    runs = [_shortest_masked_run_px(mask) for mask in first]
+    if sides_px[0] == 100:
+        assert min(runs) >= 100  # unions of 100 px squares inside the image
+    else:
+        assert min(runs) < 50
+
+
+def test_room_sets_are_seed_0_and_1_and_differ(encoder):
+    assert ROOMS == {"validation": 0, "test": 1}
+    rooms = {}
+    for name, seed in ROOMS.items():
+        env = table2_env(encoder, level=2, condition="clean", num_envs=4, device="cpu", seed=seed)
+        env.reset()
+        rooms[name] = env.world.room_size_m.clone()
+    assert not torch.equal(rooms["validation"], rooms["test"])
+    assert PolicyEvalConfig("p", "e", rooms="test").room_seed == 1
+    with pytest.raises(ValueError, match="seed 1, but seed=2"):
+        PolicyEvalConfig("p", "e", rooms="test", seed=2).validate()
+    with pytest.raises(ValueError, match="validation"):
+        PolicyEvalConfig("p", "e", rooms="holdout").validate()
+
+
+def test_evaluate_policy_runs_every_new_condition_on_test_rooms_and_records_fingerprints(tmp_path):
+    torch.manual_seed(0)
+    config = make_config("tiny")
+    save_weights(tmp_path / "enc", Cmwae(config), "cmwae", asdict(config), 0, {"train": {"scheme": "s2"}})
+    policy = ActorCritic(POLICY_SIZES["tiny"])
+    save_weights(tmp_path / "policy", policy, "policy", POLICY_SIZES["tiny"].to_json(), 0,
+                 {"encoder_fingerprint": checkpoint_fingerprint(tmp_path / "enc")})  # fmt: skip
+    result = evaluate_policy(PolicyEvalConfig(str(tmp_path / "policy"), str(tmp_path / "enc"), levels=(1,),
+                                              conditions=NEW_CONDITIONS, episodes=1, batch_envs=1, rooms="test",
+                                              out_dir=str(tmp_path / "eval"), plots_per_cell=0, precision="fp32"))  # fmt: skip
+    written = json.loads((tmp_path / "eval" / "table2.json").read_text())
+    assert [c["condition"] for c in written["cells"]] == list(NEW_CONDITIONS)
+    assert all(c["episodes"] == 1 for c in written["cells"])
+    assert written["rooms"] == "test" and written["room_seed"] == 1
+    assert written["policy_fingerprint"] == checkpoint_fingerprint(tmp_path / "policy")
+    assert written["encoder_fingerprint"] == checkpoint_fingerprint(tmp_path / "enc")
+    assert written["fast_path"]["encoder"] and written["fast_path"]["precision_requested"] == "fp32"
+    assert set(written["stereo_sensor"]) == {"stereo", "stereo-projector-off"}
+    assert written["stereo_sensor"]["stereo"]["projector_on"] and not written["stereo_sensor"]["stereo-projector-off"]["projector_on"]
+    assert written["stereo_sensor"]["stereo"]["baseline_m"] == pytest.approx(0.095)
+    assert result["out_dir"] == str(tmp_path / "eval")
+
+
+def test_every_condition_builds_a_valid_env_config():
+    assert set(NEW_CONDITIONS) <= set(CONDITIONS)
+    for overrides in CONDITIONS.values():
+        assert set(overrides) <= {"corruption", "corruption_scheme"}

@@ -340,7 +340,7 @@ def _cmd_bench_runtime(args: argparse.Namespace) -> int:
 def _cmd_fly(args: argparse.Namespace) -> int:
     from runtime.programs.fly import run_fly
 
-    return run_fly(args.config, print_json=args.json, check_only=args.check)
+    return run_fly(args.config, print_json=args.json, check_only=args.check, camera_bag=args.camera_bag)
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
@@ -438,6 +438,10 @@ def build_parser() -> argparse.ArgumentParser:
     fly.add_argument("--config", required=True, help="TOML config, e.g. /etc/cmnav/cmnav.toml")
     fly.add_argument("--json", action="store_true", help="print a JSON summary (episodes, logs, error) on the last line at exit")
     fly.add_argument("--check", action="store_true", help="only validate the config and load the model, then exit 0 (or 2)")
+    fly.add_argument("--camera-bag", metavar="FILE",
+                     help="fly on a RealSense recording (.bag / .db3 from realsense-viewer or rs.recorder) played in real "
+                     "time instead of the configured camera: camera.source = \"bag\", camera.bag.path = FILE; its end "
+                     "is a lost camera (a bench dry run; needs pyrealsense2)")  # fmt: skip
     fly.set_defaults(func=_cmd_fly)
 
     replay = sub.add_parser(
@@ -484,15 +488,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="curriculum levels (obstacle counts), cycled over rooms (with --policy: drawn uniformly between the "
                    "smallest and the largest)")  # fmt: skip
     _config_option(dataset, "--frames-per-room", "training.data.generate:DatasetSpec.frames_per_room", type=int, help="views per room")
-    dataset.add_argument("--policy", metavar="POLICY_DIR", help="record along this policy's flights (needs --encoder)")
-    dataset.add_argument("--encoder", metavar="CMWAE_DIR", help="the encoder the --policy was trained with")
-    _config_option(dataset, "--every-steps", "training.policy.flight_frames:FlightFramesSpec.every_steps", type=int,
-                   help="with --policy: keep one frame in this many along each flight")  # fmt: skip
     _config_option(dataset, "--depth", "training.data.generate:DatasetSpec.depth", choices=["rendered", "stereo"],
                    help="stereo: also store the simulated D455's stereo depth of each frame (depth_stereo/), the degraded "
                    "input of `cmnav train cmwae --scheme stereo`")  # fmt: skip
     _config_option(dataset, "--stereo-projector-off-fraction", "training.data.generate:DatasetSpec.stereo_projector_off_fraction",
                    type=float, help="with --depth stereo: share of frames matched with the IR projector off")  # fmt: skip
+    dataset.add_argument("--policy", metavar="POLICY_DIR", help="record along this policy's flights (needs --encoder)")
+    dataset.add_argument("--encoder", metavar="CMWAE_DIR", help="the encoder the --policy was trained with")
+    _config_option(dataset, "--every-steps", "training.policy.flight_frames:FlightFramesSpec.every_steps", type=int,
+                   help="with --policy: keep one frame in this many along each flight")  # fmt: skip
     _config_option(dataset, "--envs", "training.policy.flight_frames:FlightFramesSpec.num_envs", type=int,
                    help="with --policy: flights flown at once")  # fmt: skip
     dataset.set_defaults(func=_cmd_dataset)
@@ -698,12 +702,12 @@ def build_parser() -> argparse.ArgumentParser:
     _config_option(eval_policy, "--batch-envs", "training.policy.evaluate:PolicyEvalConfig.batch_envs", type=int, help="episodes flown at once")
     _config_option(eval_policy, "--device", "training.policy.evaluate:PolicyEvalConfig.device", help="cpu or cuda")
     _config_option(eval_policy, "--seed", "training.policy.evaluate:PolicyEvalConfig.seed", type=int, help="seed of the rooms")
+    eval_policy.add_argument("--rooms", choices=["validation", "test"],
+                             help="room set: validation (seed 0) to choose models on, test (seed 1) for published tables")  # fmt: skip
     eval_policy.add_argument("--out", help="directory for table2.json/.md and plots (default POLICY/eval)")
     eval_policy.add_argument("--json", action="store_true", help="print the result as JSON on the last line")
     add_precision(eval_policy)
     eval_policy.set_defaults(func=_cmd_eval_policy)
-    eval_policy.add_argument("--rooms", choices=["validation", "test"],
-                             help="room set: validation (seed 0) to choose models on, test (seed 1) for published tables")  # fmt: skip
 
     pipeline = sub.add_parser(
         "pipeline",

@@ -392,7 +392,17 @@ class ReplayCameraConfig:
     path: Path | None = None  # required with camera.source = "replay"
 
 
-CAMERA_SOURCES = ("realsense", "sim", "replay")
+@dataclass(frozen=True)
+class BagCameraConfig:
+    """A RealSense recording played by librealsense's playback device through the live camera's
+    code path (bench runs with a field recording): ``.bag`` (realsense-viewer / rs.recorder up to
+    librealsense 2.57) or ``.db3`` (ROS 2 bag, what rs.recorder writes from 2.58 on)."""
+
+    path: Path | None = None  # required with camera.source = "bag"
+
+
+RECORDING_SUFFIXES = (".bag", ".db3")
+CAMERA_SOURCES = ("realsense", "sim", "replay", "bag")
 
 
 @dataclass(frozen=True)
@@ -404,6 +414,7 @@ class CameraConfig:
     realsense: RealSenseConfig = field(default_factory=RealSenseConfig)
     sim: SimCameraConfig = field(default_factory=SimCameraConfig)
     replay: ReplayCameraConfig = field(default_factory=ReplayCameraConfig)
+    bag: BagCameraConfig = field(default_factory=BagCameraConfig)
 
     def __post_init__(self) -> None:
         _require(self.source in CAMERA_SOURCES, "camera.source", self.source, f"one of {', '.join(CAMERA_SOURCES)}")
@@ -413,6 +424,16 @@ class CameraConfig:
             _require(0 < self.sim.port < 65536, "camera.sim.port", self.sim.port, 'a TCP port in 1..65535 with source = "sim"')
         if self.source == "replay":
             _require(self.replay.path is not None, "camera.replay.path", self.replay.path, 'a flight log path with source = "replay"')
+        if self.source == "bag":
+            _require(
+                self.bag.path is not None and Path(self.bag.path).suffix.lower() in RECORDING_SUFFIXES,
+                "camera.bag.path",
+                self.bag.path,
+                'a RealSense recording (.bag or .db3, from realsense-viewer or rs.recorder) with source = "bag"',
+            )
+
+
+GOAL_SOURCES = ("config", "mission")
 
 
 @dataclass(frozen=True)
@@ -424,15 +445,31 @@ class MissionConfig:
     the pilot to arm, take off and switch to offboard, flies an episode, commands Hold, and waits
     for the next switch to offboard (``max_episodes``, 0 = until stopped).  With it (SITL dry runs)
     the runtime arms, takes off to ``takeoff_alt_m`` above home, flies one episode, lands and exits.
+
+    ``goal_source = "mission"``: the goals are the waypoints of the mission uploaded to the
+    autopilot (a QGroundControl plan), downloaded after start-up and checked against the
+    watchdog's geofence before anything is armed; episode k flies waypoint k (the pilot's k-th
+    switch to offboard; a dry run flies them all in one flight, re-entering offboard for each), and
+    the current mission item is set before each so the ground station shows the progress.
+    ``max_episodes`` > 0 flies only the first ``max_episodes`` waypoints.
     """
 
-    goal_rel_home_enu_m: tuple[float, float, float] | None = None  # required by cmnav fly
+    goal_source: str = "config"  # "config": goal_rel_home_enu_m; "mission": the autopilot's mission waypoints
+    goal_rel_home_enu_m: tuple[float, float, float] | None = None  # required by cmnav fly with goal_source = "config"
     episode_timeout_s: float = 60.0  # offboard flight time limit of one episode
     allow_arm_takeoff: bool = False
     takeoff_alt_m: float = 1.5  # m above home, with allow_arm_takeoff
     max_episodes: int = 0  # 0 = fly every time the pilot selects offboard, until stopped
 
     def __post_init__(self) -> None:
+        _require(self.goal_source in GOAL_SOURCES, "mission.goal_source", self.goal_source, f"one of {', '.join(GOAL_SOURCES)}")
+        _require(
+            self.goal_source == "config" or self.goal_rel_home_enu_m is None,
+            "mission.goal_rel_home_enu_m",
+            self.goal_rel_home_enu_m,
+            'unset with goal_source = "mission" (the goals are the waypoints of the mission on the autopilot): '
+            "remove it, or set goal_source = \"config\"",
+        )
         if self.goal_rel_home_enu_m is not None:
             _require(
                 len(self.goal_rel_home_enu_m) == 3 and all(math.isfinite(v) for v in self.goal_rel_home_enu_m),
@@ -450,7 +487,7 @@ class MissionConfig:
             self.max_episodes,
             "an integer >= 0 (0 = until stopped)",
         )
-        if self.allow_arm_takeoff:
+        if self.allow_arm_takeoff and self.goal_source == "config":
             _require(
                 self.max_episodes in (0, 1),
                 "mission.max_episodes",

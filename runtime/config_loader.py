@@ -65,8 +65,9 @@ def _load(path: Path) -> RuntimeConfig:
     if (depth := _depth(data)) > CONFIG_MAX_DEPTH:
         raise ConfigError(f"{path} nests {depth} levels of arrays or tables: a config has at most {CONFIG_MAX_DEPTH}")
     config = _build(RuntimeConfig, data, "")
-    if config.mission.goal_rel_home_enu_m is None:
-        raise ConfigError("mission.goal_rel_home_enu_m is missing: set [mission] goal_rel_home_enu_m = [east, north, up] (m from home)")
+    if config.mission.goal_source == "config" and config.mission.goal_rel_home_enu_m is None:
+        raise ConfigError("mission.goal_rel_home_enu_m is missing: set [mission] goal_rel_home_enu_m = [east, north, up] (m from home), "
+                          'or goal_source = "mission" to fly the waypoints uploaded to the autopilot')
     config = _resolve_paths(config, path.resolve().parent)
     _check_files(config)
     return config
@@ -172,7 +173,9 @@ def _resolve_paths(config: RuntimeConfig, base: Path) -> RuntimeConfig:
         ),
         recorder=dataclasses.replace(config.recorder, log_dir=absolute(config.recorder.log_dir)),
         camera=dataclasses.replace(
-            config.camera, replay=dataclasses.replace(config.camera.replay, path=absolute(config.camera.replay.path))
+            config.camera,
+            replay=dataclasses.replace(config.camera.replay, path=absolute(config.camera.replay.path)),
+            bag=dataclasses.replace(config.camera.bag, path=absolute(config.camera.bag.path)),
         ),
     )
 
@@ -203,6 +206,9 @@ def _check_files(config: RuntimeConfig) -> None:
     replay = config.camera.replay.path
     if config.camera.source == "replay" and replay is not None and not replay.is_file():
         raise ConfigError(f"camera.replay.path = {str(replay)!r}: no such file")
+    bag = config.camera.bag.path
+    if config.camera.source == "bag" and bag is not None and not bag.is_file():
+        raise ConfigError(f"camera.bag.path = {str(bag)!r}: no such file (a recording from realsense-viewer or rs.recorder)")
     log_dir = config.recorder.log_dir
     if log_dir is not None and (problem := directory_problem(log_dir)) is not None:
         raise ConfigError(f"recorder.log_dir = {str(log_dir)!r}: {problem} (chown it to the service user, or choose another)")

@@ -4,7 +4,9 @@ itself: ``cmnav fly`` with ``mission.allow_arm_takeoff = true`` and the SITL fli
 
 connect → wait for health (armable, local position, home) → first camera frame → arm → take off
 (and wait for Hold at the takeoff height) → [the program's last check before offboard] → hover
-setpoint, offboard → fly the policy → pilot check → land, wait for disarm.
+setpoint, offboard → fly the policy → pilot check → land, wait for disarm.  With several episodes
+(``cmnav fly``'s mission waypoints) the part from the program's check to the pilot check repeats
+for each, from Hold, while each reaches its goal.
 
 - The autopilot refuses offboard (or never shows it): the trip is recorded (``offboard_refused``),
   Hold is commanded, the vehicle lands, nothing is flown.
@@ -100,45 +102,59 @@ class EpisodeScript:
         self,
         takeoff_alt_m: float,
         fly: Callable[[VehicleState], Awaitable[EpisodeResult]],
-        before_offboard: Callable[[], None],
+        before_offboard: Callable[[], Awaitable[None] | None],
         on_refused: Callable[[EpisodeResult, int], Awaitable[None]],
+        episodes: int = 1,
     ) -> EpisodeResult:
         """Arm, take off, ``before_offboard()`` (may raise :class:`OffboardWithheld`: land, re-raise),
         offboard, ``fly(state in offboard)``, pilot check, land.  If the autopilot refuses offboard,
-        ``on_refused(result, t_request_ns)`` records the unflown episode before the landing."""
+        ``on_refused(result, t_request_ns)`` records the unflown episode before the landing.
+
+        ``episodes`` > 1 (a mission's waypoints): after each episode that reached its goal (the
+        flight loop ends it in Hold), ``before_offboard`` and offboard again for the next one, in
+        the same flight; any other outcome lands.  Returns the last episode's result."""
         self.status(f"dry run: arming and taking off to {takeoff_alt_m:.2f} m")
         self.flight.enter(Phase.ARMING)
         await self.vehicle.arm()
         self.flight.enter(Phase.TAKING_OFF)
         await self.vehicle.takeoff(takeoff_alt_m)
         await self.alive_while(self.vehicle.wait_takeoff_done(takeoff_alt_m))
-        try:
-            before_offboard()
-        except OffboardWithheld as err:
-            log.error("not entering offboard: %s; landing", err)
-            await self.land()
-            raise
-        self.flight.enter(Phase.ENTERING_OFFBOARD)
-        t_request_ns = time.monotonic_ns()
-        try:
-            await self.vehicle.start_offboard(HOVER)
-            state = await self.alive_while(
-                self.vehicle.wait_until(lambda s: s.flight_mode == MODE_OFFBOARD, self.vehicle.config.command_timeout_s, "offboard mode")
-            )
-        except VehicleError as err:
-            result = await self._offboard_refused(err, t_request_ns)
-            await on_refused(result, t_request_ns)
-            await self.land()
-            return result
-        self.flight.enter(Phase.EPISODE)
-        result = await fly(state)
-        self.flight.enter(Phase.HOLDING)
-        if self.loop.watchdog.pilot_took_over:
-            log.warning("the pilot took over: not landing, the vehicle is theirs")
-            return result
-        if result.abort_reason == TripCause.VEHICLE_FAULT.value and not await self._still_armed():
-            log.warning("the autopilot reported a fault and disarmed: nothing to land")
-            return result
+        for index in range(episodes):
+            if index > 0:
+                # The telemetry shows a mode change up to a HEARTBEAT late: wait for the Hold, so
+                # that the next offboard seen is the new one (an old OFFBOARD would end it at once).
+                await self.alive_while(self.vehicle.wait_until(
+                    lambda s: s.flight_mode != MODE_OFFBOARD, self.vehicle.config.command_timeout_s, "Hold between episodes"))  # fmt: skip
+            try:
+                if (pending := before_offboard()) is not None:
+                    await pending
+            except OffboardWithheld as err:
+                log.error("not entering offboard: %s; landing", err)
+                await self.land()
+                raise
+            self.flight.enter(Phase.ENTERING_OFFBOARD)
+            t_request_ns = time.monotonic_ns()
+            try:
+                await self.vehicle.start_offboard(HOVER)
+                state = await self.alive_while(
+                    self.vehicle.wait_until(lambda s: s.flight_mode == MODE_OFFBOARD, self.vehicle.config.command_timeout_s, "offboard mode")
+                )
+            except VehicleError as err:
+                result = await self._offboard_refused(err, t_request_ns)
+                await on_refused(result, t_request_ns)
+                await self.land()
+                return result
+            self.flight.enter(Phase.EPISODE)
+            result = await fly(state)
+            self.flight.enter(Phase.HOLDING)
+            if self.loop.watchdog.pilot_took_over:
+                log.warning("the pilot took over: not landing, the vehicle is theirs")
+                return result
+            if result.abort_reason == TripCause.VEHICLE_FAULT.value and not await self._still_armed():
+                log.warning("the autopilot reported a fault and disarmed: nothing to land")
+                return result
+            if result.outcome != "success":
+                break
         await self.land()
         return result
 

@@ -16,6 +16,15 @@ true`` (SITL dry runs) it flies the episode script (``runtime.programs.episode``
 sitl``): arms, takes off, enters offboard itself, flies one episode, lands and exits; if the
 autopilot refuses offboard, the refusal is recorded as the episode and the vehicle lands.
 
+Goals (``mission.goal_source``): ``"config"`` flies to ``mission.goal_rel_home_enu_m``;
+``"mission"`` downloads the mission on the autopilot after start-up (a QGroundControl plan,
+``runtime.programs.mission_goals``), places its waypoints relative to home and checks them against
+the geofence — a mission that cannot be flown exits 2 with the one-line reason before anything is
+armed — and then episode k flies waypoint k (in a dry run: all of them in one flight, re-entering
+offboard from Hold for each), the current mission item set before each so that a ground station
+shows the progress.  ``camera.source = "bag"`` (``--camera-bag FILE``) flies on a RealSense
+recording played in real time (``runtime.camera.realsense``); its end is a lost camera.
+
 One MCAP log per episode in ``recorder.log_dir`` (rotated: ``recorder.max_logs`` /
 ``max_total_gb``).  systemd (``Type=notify``): READY after start-up, a STATUS line per phase, and
 WATCHDOG pings from the flight loop's healthy iterations (and from the waiting phases while the
@@ -35,6 +44,7 @@ log directory): the unit's ``RestartPreventExitStatus=2`` keeps systemd from ret
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import logging
 import os
@@ -45,10 +55,10 @@ from typing import Awaitable, TypeVar
 import numpy as np
 
 from ..camera import CameraSource
-from ..camera.realsense import RealSenseSource, RealSenseUnavailableError
+from ..camera.realsense import RealSenseSource, RealSenseUnavailableError, RecordingError
 from ..camera.replay_source import ReplayCameraSource
 from ..camera.sim_source import SimCameraSource
-from ..config import CameraConfig, RuntimeConfig
+from ..config import BagCameraConfig, CameraConfig, RuntimeConfig
 from ..config_loader import ConfigError, load_config
 from ..contract import HOVER, ContractMismatchError
 from ..flight import EpisodeResult, FlightLoop
@@ -56,14 +66,15 @@ from ..log.reader import ReplayError
 from ..log.recorder import Recorder, RecorderError
 from ..log.rotation import new_log_path, rotate_logs
 from ..model import ModelLoadError, PolicyModel, check_outputs_finite, resolve_providers
-from ..report import report_paths, write_report_quietly
-from ..service.affinity import prepare_control_process, run_as_background_thread
+from ..report.worker import ReportWorker
+from ..service.affinity import prepare_control_process
 from ..service.sdnotify import SystemdNotifier
 from ..service.shutdown import close_step, in_daemon_thread
 from ..service.signals import StopSignals, cancel_on_stop_signals, ignore_stop_signals
 from ..state import MODE_OFFBOARD, VehicleError, VehicleState
 from ..vehicle import Vehicle
 from .episode import EpisodeError, EpisodeScript, OffboardWithheld
+from .mission_goals import MissionError, MissionWaypoint, check_geofence, mission_waypoints
 from .stop import FlightPhase, Phase, stop_on_signal
 
 log = logging.getLogger(__name__)
@@ -114,6 +125,9 @@ def make_camera(config: CameraConfig) -> CameraSource:
         return RealSenseSource(config.realsense)
     if config.source == "sim":
         return SimCameraSource(config.sim.port)
+    if config.source == "bag":
+        assert config.bag.path is not None  # CameraConfig checks it
+        return RealSenseSource(config.realsense, recording=config.bag.path)
     assert config.replay.path is not None  # CameraConfig checks it
     return ReplayCameraSource(config.replay.path)
 
@@ -128,7 +142,8 @@ class FieldProgram:
         self.flight = FlightPhase()  # what a stop signal interrupts (runtime.programs.stop)
         self.signals: StopSignals | None = None  # set by the entry point
         self._t_start_ns = time.monotonic_ns()
-        self._reports: list[asyncio.Future] = []  # flight reports being drawn (runtime.report)
+        self._reports = ReportWorker()  # flight reports being drawn (runtime.report)
+        self.waypoints: list[MissionWaypoint] | None = None  # mission.goal_source = "mission": episode k flies waypoint k
 
     async def run(self) -> int:
         """Everything from model load to exit; returns the exit code (see the module docstring)."""
@@ -154,11 +169,15 @@ class FieldProgram:
         script = EpisodeScript(vehicle, loop, self.flight, self._status, self._alive_while)
         try:
             await self._start(script)
+            if self.config.mission.goal_source == "mission":
+                self.waypoints = await self._load_mission(vehicle)
             if self.config.mission.allow_arm_takeoff:
                 return await self._dry_run(script, model)
             return await self._pilot_episodes(vehicle, loop, model)
         except VehicleError as err:
             raise FlyError(EXIT_FAILED, f"vehicle: {err}") from err
+        except RecordingError as err:  # the file will not change on a restart
+            raise FlyError(EXIT_CONFIG, f"camera: {err}") from err
         except (RealSenseUnavailableError, ReplayError) as err:
             raise FlyError(EXIT_FAILED, f"camera: {err}") from err
         except asyncio.CancelledError:
@@ -167,8 +186,8 @@ class FieldProgram:
         finally:
             await close_step("the flight loop and camera", loop.close)
             await close_step("MAVSDK", vehicle.close)
-            if self._reports:
-                await close_step("the flight reports", lambda: asyncio.gather(*self._reports), REPORT_WAIT_S)
+            if pending := self._reports.pending():
+                await close_step("the flight reports", lambda: asyncio.gather(*pending), REPORT_WAIT_S)
 
     # ------------------------------------------------------------------ start-up
 
@@ -187,11 +206,48 @@ class FieldProgram:
         self.notifier.ready("started: connected, healthy, camera streaming")
         log.info("started: connected, healthy, camera streaming")
 
+    async def _load_mission(self, vehicle: Vehicle) -> list[MissionWaypoint]:
+        """The mission on the autopilot as episode goals (``mission.goal_source = "mission"``),
+        checked against the geofence on the ground: :class:`FlyError` (exit 2) with the one-line
+        reason if it cannot be flown; nothing is armed."""
+        self._status("downloading the mission from the autopilot")
+        items = await self._alive_while(vehicle.download_mission())
+        home_lat_deg, home_lon_deg = await vehicle.home_geodetic_deg()
+        try:
+            waypoints = mission_waypoints(items, home_lat_deg, home_lon_deg)
+            check_geofence(waypoints, self.config.watchdog)
+        except MissionError as err:
+            raise FlyError(EXIT_CONFIG, f"mission refused, nothing armed: {err}") from err
+        if self.config.mission.max_episodes > 0:
+            waypoints = waypoints[: self.config.mission.max_episodes]
+        self.summary["mission"] = [{"seq": w.seq, "goal_rel_home_enu_m": list(w.goal_rel_home_enu_m)} for w in waypoints]
+        log.info("mission: %d waypoint(s) to fly, relative to home (ENU m): %s", len(waypoints),
+                 [(w.seq, w.goal_rel_home_enu_m) for w in waypoints])  # fmt: skip
+        return waypoints
+
+    def _goal_rel_home_enu_m(self, episode: int) -> np.ndarray:
+        """Episode ``episode``'s goal relative to home (ENU, m): the configured one, or waypoint k."""
+        if self.waypoints is None:
+            assert self.config.mission.goal_rel_home_enu_m is not None  # the config loader checks it
+            return np.asarray(self.config.mission.goal_rel_home_enu_m, dtype=np.float64)
+        return np.asarray(self.waypoints[episode - 1].goal_rel_home_enu_m, dtype=np.float64)
+
+    async def _report_progress(self, vehicle: Vehicle, episode: int) -> None:
+        """Make episode ``episode``'s waypoint the current mission item, so every ground station
+        shows it (MISSION_CURRENT).  A refusal costs the display, not the flight: logged."""
+        if self.waypoints is None:
+            return
+        seq = self.waypoints[episode - 1].seq
+        try:
+            await vehicle.set_current_mission_item(seq)
+        except VehicleError as err:
+            log.error("the ground station will not show mission item %d as current: %s", seq, err)
+
     # ------------------------------------------------------------------ the two ways to fly
 
     async def _pilot_episodes(self, vehicle: Vehicle, loop: FlightLoop, model: PolicyModel) -> int:
         """Wait for the pilot's switch to offboard, fly, repeat (``mission.max_episodes``)."""
-        max_episodes = self.config.mission.max_episodes
+        max_episodes = self.config.mission.max_episodes if self.waypoints is None else len(self.waypoints)
         episode = 0
         while max_episodes == 0 or episode < max_episodes:
             episode += 1
@@ -207,39 +263,47 @@ class FieldProgram:
                 self.summary["episodes"].append({"episode": episode, "outcome": "refused", "abort_reason": str(err)})
                 self.notifier.status(f"episode {episode}: refused ({err})")
                 continue
+            await self._report_progress(vehicle, episode)
             await self._episode(loop, model, episode, state, recorder)
         return EXIT_OK
 
     async def _dry_run(self, script: EpisodeScript, model: PolicyModel) -> int:
         """The episode script (``runtime.programs.episode``): arm, take off, enter offboard, fly one
-        episode, land (``mission.allow_arm_takeoff``)."""
+        episode, land (``mission.allow_arm_takeoff``).  With a mission, one flight: an episode per
+        waypoint, each with its own log, re-entering offboard from Hold for the next one."""
         loop = script.loop
         recorder: Recorder | None = None
+        episode = 0
+        episodes = 1 if self.waypoints is None else len(self.waypoints)
 
-        def open_log() -> None:  # before offboard: the log records the offboard request too
-            nonlocal recorder
-            recorder = self._open_recorder(model, 1)
+        async def before_offboard() -> None:  # the log opens before offboard: it records the request too
+            nonlocal recorder, episode
+            episode += 1
+            recorder = self._open_recorder(model, episode)
             loop.recorder = recorder
+            await self._report_progress(script.vehicle, episode)
 
         async def refused(result: EpisodeResult, t_request_ns: int) -> None:
             loop.recorder = None
             if recorder is not None:
                 await self._close_log(recorder)
-            self._record_episode(result, 1, recorder)
+            self._record_episode(result, episode, recorder)
 
         try:
-            result = await script.dry_run(
+            await script.dry_run(
                 self.config.mission.takeoff_alt_m,
-                lambda state: self._episode(loop, model, 1, state, recorder),
-                before_offboard=open_log,
+                lambda state: self._episode(loop, model, episode, state, recorder),
+                before_offboard=before_offboard,
                 on_refused=refused,
+                episodes=episodes,
             )
         except RecorderRefusal as err:
             self.summary["error"] = f"offboard refused: {err}"
             return EXIT_CONFIG
         if loop.watchdog.pilot_took_over:
             return EXIT_FAILED
-        return EXIT_OK if result.outcome == "success" else EXIT_FAILED
+        flown = self.summary["episodes"]
+        return EXIT_OK if len(flown) == episodes and all(e["outcome"] == "success" for e in flown) else EXIT_FAILED
 
     async def _wait_for_offboard(self, vehicle: Vehicle, episode: int) -> VehicleState:
         """Stream hover setpoints and wait until the pilot switches *into* offboard, armed and in the air."""
@@ -269,11 +333,12 @@ class FieldProgram:
         self, loop: FlightLoop, model: PolicyModel, episode: int, state: VehicleState, recorder: Recorder | None
     ) -> EpisodeResult:
         """One offboard episode toward the goal (relative to home), recorded to its own log."""
-        assert state.home_enu_m is not None and self.config.mission.goal_rel_home_enu_m is not None
-        goal_enu_m = state.home_enu_m + np.asarray(self.config.mission.goal_rel_home_enu_m)
+        assert state.home_enu_m is not None
+        goal_enu_m = state.home_enu_m + self._goal_rel_home_enu_m(episode)
         loop.recorder = recorder
         self.flight.enter(Phase.EPISODE)
-        self._status(f"episode {episode}: flying to the goal {np.round(goal_enu_m - state.home_enu_m, 2).tolist()} m from home")
+        item = "" if self.waypoints is None else f" (mission item {self.waypoints[episode - 1].seq})"
+        self._status(f"episode {episode}: flying to the goal {np.round(goal_enu_m - state.home_enu_m, 2).tolist()} m from home{item}")
         try:
             result = await loop.fly(goal_enu_m, self.config.mission.episode_timeout_s)
             self.flight.enter(Phase.HOLDING)
@@ -295,7 +360,10 @@ class FieldProgram:
 
     def _record_episode(self, result: EpisodeResult, episode: int, recorder: Recorder | None, abort_reason: str | None = None) -> None:
         record = result.summary()
-        record.update(episode=episode, log=str(recorder.path) if recorder else None)
+        record.update(episode=episode, log=str(recorder.path) if recorder else None,
+                      goal_rel_home_enu_m=self._goal_rel_home_enu_m(episode).round(3).tolist())  # fmt: skip
+        if self.waypoints is not None:
+            record["mission_item"] = self.waypoints[episode - 1].seq
         if recorder is not None:
             record.update(log_error=recorder.stats.log_error, log_records_written=recorder.stats.written,
                           log_records_dropped=recorder.stats.dropped)  # fmt: skip
@@ -306,17 +374,10 @@ class FieldProgram:
             self._start_report(recorder.path, record)
 
     def _start_report(self, log_path: Path, record: dict) -> None:
-        """Draw the episode's report beside its log (``runtime.report``) in a background thread at
+        """Draw the episode's report beside its log (``runtime.report``) on the report thread at
         idle priority: the next episode may already be flying.  A failure is a warning, never the
         flight's."""
-        html_path, _ = report_paths(log_path)
-
-        def draw() -> None:
-            run_as_background_thread()
-            if write_report_quietly(log_path, record) is not None:
-                record["report"] = str(html_path)
-
-        self._reports.append(asyncio.ensure_future(in_daemon_thread("flight-report", draw)))
+        self._reports.submit(log_path, record)
 
     def _open_recorder(self, model: PolicyModel, episode: int) -> Recorder | None:
         """The episode's log, opened (and its first record written) before offboard.  If it cannot
@@ -375,12 +436,28 @@ async def _main(program: FieldProgram) -> int:
         return EXIT_OK
 
 
-def run_fly(config_path: str | Path, print_json: bool = False, check_only: bool = False) -> int:
+def with_camera_bag(config: RuntimeConfig, path: str | Path) -> RuntimeConfig:
+    """``config`` with its camera replaced by a RealSense recording (``cmnav fly --camera-bag``);
+    :class:`ConfigError` if the file is missing or not a recording."""
+    path = Path(path).absolute()
+    if not path.is_file():
+        raise ConfigError(f"--camera-bag {path}: no such file (a recording from realsense-viewer or rs.recorder)")
+    try:
+        camera = dataclasses.replace(config.camera, source="bag", bag=BagCameraConfig(path=path))
+    except ValueError as err:  # CameraConfig's checks, naming the key
+        raise ConfigError(f"--camera-bag: {err}") from err
+    return dataclasses.replace(config, camera=camera)
+
+
+def run_fly(config_path: str | Path, print_json: bool = False, check_only: bool = False, camera_bag: str | Path | None = None) -> int:
     """Entry of ``cmnav fly``: returns the exit code; with ``print_json`` the summary (episodes,
     logs, error) is printed as one JSON line on stdout at exit.  ``check_only``: validate the
-    config and load the model, then exit (0 or 2) without touching the vehicle or camera."""
+    config and load the model, then exit (0 or 2) without touching the vehicle or camera.
+    ``camera_bag``: fly on this RealSense recording instead of the configured camera."""
     try:
         config = load_config(config_path)
+        if camera_bag is not None:
+            config = with_camera_bag(config, camera_bag)
         prepare_control_process(config.runtime.cpu_affinity)  # before any thread of ONNX Runtime or MAVSDK exists
         if check_only:
             model = load_model(config)
@@ -392,7 +469,8 @@ def run_fly(config_path: str | Path, print_json: bool = False, check_only: bool 
         return EXIT_CONFIG
     if check_only:
         print(f"{config_path}: config valid; model {model.path} loads on {list(model.providers)} "
-              f"(sha256 {model.sha256}); goal {list(config.mission.goal_rel_home_enu_m or ())} m from home")  # fmt: skip
+              f"(sha256 {model.sha256}); " + (f"goal {list(config.mission.goal_rel_home_enu_m or ())} m from home"
+              if config.mission.goal_source == "config" else "goals: the mission's waypoints on the autopilot"))  # fmt: skip
         return EXIT_OK
     notifier = SystemdNotifier() if config.systemd.notify else SystemdNotifier({})
     program = FieldProgram(config, notifier)

@@ -1,9 +1,14 @@
 """Batched quadrotor point-mass dynamics behind a PX4-like velocity-tracking controller.
 
 The controller plays the autopilot's role: it tracks a world-ENU velocity setpoint and a yaw-rate
-setpoint.  Desired acceleration = P-gain x velocity error + drag feed-forward, vertical part
-clamped to the vertical-acceleration limits, horizontal part clamped so the thrust axis stays
-within the tilt limit.  The thrust axis follows its setpoint with a first-order lag (time
+setpoint.  Desired acceleration = P-gain x velocity error (its own gain vertically) + an integral
+of the horizontal error (PX4's MPC_XY_VEL_I_ACC) + drag feed-forward (a fraction of it), vertical
+part clamped to the vertical-acceleration limits, horizontal part clamped to its own limit and so
+the thrust axis stays within the tilt limit.  The defaults are the ideal vehicle the shipped
+policies were trained on; :data:`PX4_SIH_V1_16` is PX4 v1.16 SIH as identified
+(``sim.response``, docs/px4-sitl.md): with no drag feed-forward and a slow integrator, a
+commanded speed is reached at ~0.8 within seconds and the vehicle still creeps after a stop.
+The command delay of an autopilot is not stepped here: ``CommandDelay`` holds the commands back.  The thrust axis follows its setpoint with a first-order lag (time
 constant ``attitude_tau_s``), the yaw rate follows its setpoint with another (``yaw_rate_tau_s``);
 collective thrust is the desired specific force projected on the actual thrust axis.  Linear
 drag, gravity and an optional external (kick) force act on the body; integration is
@@ -48,6 +53,19 @@ class DynamicsParams:
     attitude_tau_s: float = 0.1
     yaw_rate_tau_s: float = 0.1
     linear_drag_kg_s: float = 0.1
+    # PX4-like controller terms; the defaults leave the ideal vehicle as it was.
+    vertical_velocity_gain_1_s: float | None = None  # None: velocity_gain_1_s
+    velocity_integral_gain_1_s2: float = 0.0  # horizontal integral of the velocity error
+    velocity_integral_max_m_s2: float = 2.0  # the integral's acceleration, at most (anti-windup)
+    drag_feedforward: float = 1.0  # fraction of the horizontal linear drag the controller anticipates
+    max_accel_horizontal_m_s2: float = math.inf
+    yaw_rate_gain: float = 1.0  # steady yaw rate / commanded
+    max_yaw_accel_rad_s2: float = math.inf
+    # Command delays of the autopilot (s): setpoint received -> the controller acts on it
+    # (CommandDelay holds the commands back; QuadrotorDynamics.step takes them as given).
+    command_delay_xy_s: float = 0.0
+    command_delay_z_s: float = 0.0
+    command_delay_yaw_s: float = 0.0
     # The body origin cannot sink below the floor (z = 0): the ground pushes back.
     ground_contact: bool = True
 
@@ -66,6 +84,19 @@ class DynamicsParams:
             )
         if self.linear_drag_kg_s < 0.0:
             raise ValueError(f"DynamicsParams.linear_drag_kg_s={self.linear_drag_kg_s} must be >= 0")
+        if self.vertical_velocity_gain_1_s is not None and not self.vertical_velocity_gain_1_s > 0.0:
+            raise ValueError(f"DynamicsParams.vertical_velocity_gain_1_s={self.vertical_velocity_gain_1_s} must be > 0")
+        for key in ("velocity_integral_gain_1_s2", "velocity_integral_max_m_s2"):
+            if not getattr(self, key) >= 0.0:
+                raise ValueError(f"DynamicsParams.{key}={getattr(self, key)} must be >= 0")
+        if not 0.0 <= self.drag_feedforward <= 1.0:
+            raise ValueError(f"DynamicsParams.drag_feedforward={self.drag_feedforward} must be in [0, 1]")
+        for key in ("command_delay_xy_s", "command_delay_z_s", "command_delay_yaw_s"):
+            if not 0.0 <= getattr(self, key) <= 1.0:
+                raise ValueError(f"DynamicsParams.{key}={getattr(self, key)} must be in [0, 1] s")
+        for key in ("max_accel_horizontal_m_s2", "yaw_rate_gain", "max_yaw_accel_rad_s2"):
+            if not getattr(self, key) > 0.0:
+                raise ValueError(f"DynamicsParams.{key}={getattr(self, key)} must be > 0")
 
 
 @dataclass
@@ -77,6 +108,8 @@ class QuadState:
     vel_enu_m_s: Tensor
     quat_enu_flu: Tensor
     angvel_body_flu_rad_s: Tensor
+    # The controller's integral of the horizontal velocity error, world ENU (m) [B, 2]; None = zero.
+    vel_error_integral_m: Tensor | None = None
 
     @classmethod
     def at_rest(cls, pos_enu_m: Tensor, yaw_enu_rad: Tensor | float = 0.0) -> QuadState:
@@ -116,14 +149,20 @@ class QuadState:
         up_enu = quat_rotate(self.quat_enu_flu, _unit_z_like(self.pos_enu_m))
         return torch.acos(up_enu[:, 2].clamp(-1.0, 1.0))
 
+    def integral(self) -> Tensor:
+        """[B, 2] the controller's horizontal velocity-error integral (zeros when never set)."""
+        if self.vel_error_integral_m is None:
+            return torch.zeros_like(self.pos_enu_m[:, :2])
+        return self.vel_error_integral_m
+
     def to(self, device: torch.device | str) -> QuadState:
-        return QuadState(**{f.name: getattr(self, f.name).to(device) for f in fields(self)})
+        return QuadState(**{f.name: None if getattr(self, f.name) is None else getattr(self, f.name).to(device) for f in fields(self)})
 
     def select(self, idx: int | slice | list[int] | Tensor) -> QuadState:
         """The envs at idx, as a batch (an int index keeps the batch axis: B = 1)."""
         if isinstance(idx, int):
             idx = [idx]
-        return QuadState(**{f.name: getattr(self, f.name)[idx] for f in fields(self)})
+        return QuadState(**{f.name: None if getattr(self, f.name) is None else getattr(self, f.name)[idx] for f in fields(self)})
 
 
 def vel_body_flu(quat_enu_flu: Tensor, vel_enu_m_s: Tensor) -> Tensor:
@@ -156,12 +195,23 @@ class QuadrotorDynamics:
         up = _unit_z_like(state.pos_enu_m)
 
         # Controller: desired acceleration, then desired thrust axis within the tilt cone.
-        accel_des = p.velocity_gain_1_s * (vel_cmd_enu_m_s - state.vel_enu_m_s)
-        accel_des = accel_des + (p.linear_drag_kg_s / p.mass_kg) * vel_cmd_enu_m_s
+        error = vel_cmd_enu_m_s - state.vel_enu_m_s
+        accel_des = p.velocity_gain_1_s * error
+        if p.vertical_velocity_gain_1_s is not None:
+            accel_des[:, 2] = p.vertical_velocity_gain_1_s * error[:, 2]
+        # The drag feed-forward: a fraction horizontally, all of it vertically (the autopilot's
+        # hover-thrust estimate and vertical integrator hold a commanded climb rate).
+        feedforward = torch.tensor([p.drag_feedforward, p.drag_feedforward, 1.0], dtype=vel_cmd_enu_m_s.dtype, device=vel_cmd_enu_m_s.device)
+        accel_des = accel_des + (p.linear_drag_kg_s / p.mass_kg) * feedforward * vel_cmd_enu_m_s
+        integral = state.integral()
+        if p.velocity_integral_gain_1_s2 > 0.0:
+            limit_m = p.velocity_integral_max_m_s2 / p.velocity_integral_gain_1_s2
+            integral = (integral + error[:, :2] * dt_s).clamp(-limit_m, limit_m)
+            accel_des = accel_des + torch.cat([p.velocity_integral_gain_1_s2 * integral, torch.zeros_like(integral[:, :1])], dim=-1)
         accel_z = accel_des[:, 2].clamp(-p.max_accel_down_m_s2, p.max_accel_up_m_s2)
         force_z = accel_z + GRAVITY_M_S2  # specific force, > 0 since max_accel_down < g
         accel_xy = accel_des[:, :2]
-        max_xy = force_z * math.tan(p.max_tilt_rad)
+        max_xy = (force_z * math.tan(p.max_tilt_rad)).clamp(max=p.max_accel_horizontal_m_s2)
         norm_xy = torch.linalg.vector_norm(accel_xy, dim=-1)
         accel_xy = accel_xy * (max_xy / norm_xy.clamp_min(1e-9)).clamp(max=1.0).unsqueeze(-1)
         force_des = torch.cat([accel_xy, force_z.unsqueeze(-1)], dim=-1)
@@ -172,7 +222,9 @@ class QuadrotorDynamics:
         axis_new = _slerp_unit(axis, axis_des, 1.0 - math.exp(-dt_s / p.attitude_tau_s))
         roll, pitch, yaw = euler_from_quat(state.quat_enu_flu).unbind(-1)
         yaw_rate = _yaw_rate_from_body_rates(roll, pitch, state.angvel_body_flu_rad_s)
-        yaw_rate_new = yaw_rate + (yaw_rate_cmd_rad_s - yaw_rate) * (1.0 - math.exp(-dt_s / p.yaw_rate_tau_s))
+        yaw_rate_step = (p.yaw_rate_gain * yaw_rate_cmd_rad_s - yaw_rate) * (1.0 - math.exp(-dt_s / p.yaw_rate_tau_s))
+        yaw_rate_step = yaw_rate_step.clamp(-p.max_yaw_accel_rad_s2 * dt_s, p.max_yaw_accel_rad_s2 * dt_s)
+        yaw_rate_new = yaw_rate + yaw_rate_step
         quat_new = _quat_from_axis_yaw(axis_new, yaw + yaw_rate_new * dt_s)
         angvel_new = quat_log(quat_multiply(quat_conjugate(state.quat_enu_flu), quat_new)) / dt_s
 
@@ -189,7 +241,8 @@ class QuadrotorDynamics:
             pos_new = torch.cat([pos_new[:, :2], pos_new[:, 2:].clamp_min(0.0)], dim=-1)
             vel_z = torch.where(on_ground, vel_new[:, 2].clamp_min(0.0), vel_new[:, 2])
             vel_new = torch.cat([vel_new[:, :2], vel_z.unsqueeze(-1)], dim=-1)
-        return QuadState(pos_new, vel_new, quat_new, angvel_new)
+        return QuadState(pos_new, vel_new, quat_new, angvel_new,
+                         integral if p.velocity_integral_gain_1_s2 > 0.0 else state.vel_error_integral_m)
 
 
 def _unit_z_like(v: Tensor) -> Tensor:
@@ -227,3 +280,61 @@ def _quat_from_axis_yaw(axis_enu: Tensor, yaw_rad: Tensor) -> Tensor:
     roll = -torch.asin(axis_v[:, 1].clamp(-1.0, 1.0))
     pitch = torch.atan2(axis_v[:, 0], axis_v[:, 2])
     return quat_from_euler(roll, pitch, yaw_rad)
+
+
+class CommandDelay:
+    """The autopilot's command delays (``DynamicsParams.command_delay_*_s``): commands pushed with
+    their time come out ``delay`` later, per axis (horizontal, vertical, yaw).  Before the first
+    command is due, the first one pushed holds.  Batched: vel [B, 3] world ENU, yaw rate [B]."""
+
+    def __init__(self, params: DynamicsParams) -> None:
+        self._delays_s = (params.command_delay_xy_s, params.command_delay_z_s, params.command_delay_yaw_s)
+        self._history: list[tuple[float, Tensor, Tensor]] = []
+
+    @property
+    def active(self) -> bool:
+        return any(d > 0.0 for d in self._delays_s)
+
+    def push(self, t_s: float, vel_cmd_enu_m_s: Tensor, yaw_rate_cmd_rad_s: Tensor) -> tuple[Tensor, Tensor]:
+        """Record the command given at ``t_s``; return the one acting at ``t_s``."""
+        if not self.active:
+            return vel_cmd_enu_m_s, yaw_rate_cmd_rad_s
+        self._history.append((t_s, vel_cmd_enu_m_s, yaw_rate_cmd_rad_s))
+        oldest_needed_s = t_s - max(self._delays_s)
+        while len(self._history) > 1 and self._history[1][0] <= oldest_needed_s:
+            self._history.pop(0)
+        d_xy, d_z, d_yaw = self._delays_s
+        vel_xy = self._at(t_s - d_xy)[1][:, :2]
+        vel_z = self._at(t_s - d_z)[1][:, 2:]
+        return torch.cat([vel_xy, vel_z], dim=-1), self._at(t_s - d_yaw)[2]
+
+    def _at(self, t_s: float) -> tuple[float, Tensor, Tensor]:
+        """The newest command given at or before ``t_s`` (the oldest kept if none)."""
+        for entry in reversed(self._history):
+            if entry[0] <= t_s + 1e-9:
+                return entry
+        return self._history[0]
+
+
+# PX4 v1.16 SITL with its SIH quadrotor (airframe 10040): the parameters that reproduce its
+# offboard response to the identification sequence, fitted by ``sim.response.offline.fit_params``
+# to a recorded flight (RMS velocity error 0.10 m/s horizontal, 0.05 vertical, 0.045 rad/s yaw;
+# docs/px4-sitl.md has the identified numbers and the comparison).  What they make: delays of
+# 0.18 s horizontal, 0.07-0.1 s vertical, 0.12 s yaw; ~0.8 of a commanded horizontal speed
+# within seconds (no drag feed-forward, a slow integrator) and a creep after a stop; a horizontal
+# acceleration limit of 3.6 m/s^2; yaw rate at 0.93 of the command with a 0.3 s lag.
+PX4_SIH_V1_16 = DynamicsParams(
+    velocity_gain_1_s=1.96,
+    attitude_tau_s=0.083,
+    linear_drag_kg_s=0.77,
+    drag_feedforward=0.0,
+    velocity_integral_gain_1_s2=0.30,
+    max_accel_horizontal_m_s2=3.63,
+    vertical_velocity_gain_1_s=5.5,
+    yaw_rate_tau_s=0.30,
+    yaw_rate_gain=0.93,
+    max_yaw_accel_rad_s2=2.64,
+    command_delay_xy_s=0.076,
+    command_delay_z_s=0.099,
+    command_delay_yaw_s=0.124,
+)

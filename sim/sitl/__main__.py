@@ -10,7 +10,7 @@ from pathlib import Path
 from runtime.faults.catalogue import FaultSite, parse_injection
 
 from .camera_server import CameraPortError
-from .vehicle import SitlConfig, SitlVehicle, start_world_process
+from .vehicle import DYNAMICS, SitlConfig, SitlVehicle, start_world_process
 
 log = logging.getLogger("sim.sitl")
 
@@ -49,13 +49,16 @@ def parse_args(argv: list[str] | None = None) -> SitlConfig:
     parser.add_argument("--boot-time-scale", type=float, default=SitlConfig.boot_time_scale,
                         help="replay PX4 v1.16's recorded start-up (STANDBY at 4.25 s, pre-arm checks passed at 5.27 s) "
                         f"at this fraction of its times: 1 as PX4, 0 ready at once (default {SitlConfig.boot_time_scale})")
+    parser.add_argument("--dynamics", choices=sorted(DYNAMICS), default=SitlConfig.dynamics,
+                        help="the velocity response: px4 (PX4 v1.16 SIH as identified: delays, ~0.8 of a commanded "
+                        "speed, creep after a stop) or ideal (the batched training sim's vehicle) (default px4)")
     args = parser.parse_args(argv)
     try:
         injections = tuple(parse_injection(text, [FaultSite.VEHICLE]) for text in args.inject)
         config = SitlConfig(
             args.mavlink_port, args.camera_port, args.level, args.seed, args.episode_json, args.trace,
             args.physics_hz, args.camera_hz, injections, args.status_json, args.degrade, args.stand_in, args.pose_port,
-            args.heading_deg, args.boot_time_scale,
+            args.heading_deg, args.boot_time_scale, args.dynamics,
         )  # fmt: skip
         config.validate()
     except ValueError as err:  # InjectionError is one

@@ -9,6 +9,7 @@ than TOUCHDOWN_MAX_SPEED_M_S.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 
@@ -16,7 +17,7 @@ import numpy as np
 import torch
 
 from sim.collision import DEFAULT_VEHICLE_RADIUS_M, box_signed_distance_m
-from sim.dynamics import GRAVITY_M_S2, DynamicsParams, QuadrotorDynamics, QuadState
+from sim.dynamics import GRAVITY_M_S2, PX4_SIH_V1_16, CommandDelay, DynamicsParams, QuadrotorDynamics, QuadState
 from sim.world import WorldBatch
 
 from .flight_tasks import VelocityCommand
@@ -39,16 +40,21 @@ class Airframe:
         world: WorldBatch,
         spawn_xy_enu_m: np.ndarray,
         yaw_enu_rad: float = 0.0,
-        params: DynamicsParams = DynamicsParams(ground_contact=False),
+        params: DynamicsParams = PX4_SIH_V1_16,
         radius_m: float = DEFAULT_VEHICLE_RADIUS_M,
         world_contact: bool = True,
     ) -> None:
-        """``world_contact`` False: walls, ceiling and obstacles are not there for this vehicle
+        """``params``: the velocity response (default PX4 v1.16 SIH's, as identified; its command
+        delays are applied here); the floor is this class's to handle, not the dynamics'.
+        ``world_contact`` False: walls, ceiling and obstacles are not there for this vehicle
         (only the floor is), as for an external autopilot that knows no room."""
+        params = dataclasses.replace(params, ground_contact=False)
         if world.batch_size != 1:
             raise ValueError(f"an airframe flies in one world, got a batch of {world.batch_size}")
         self._world = world
         self._dynamics = QuadrotorDynamics(params)
+        self._delay = CommandDelay(params)
+        self._t_s = 0.0  # the airframe's own clock, for the command delay
         self._radius_m = radius_m
         self._world_contact = world_contact
         home = np.array([spawn_xy_enu_m[0], spawn_xy_enu_m[1], LANDING_GEAR_HEIGHT_M], dtype=np.float64)
@@ -82,12 +88,13 @@ class Airframe:
             if self.on_ground and command.vel_enu_m_s[2] <= LIFTOFF_MIN_CLIMB_M_S:
                 return None
             self.on_ground = False
-            self._state = self._dynamics.step(
-                self._state,
+            vel_cmd, yaw_rate_cmd = self._delay.push(
+                self._t_s,
                 torch.as_tensor(command.vel_enu_m_s, dtype=torch.float32).reshape(1, 3),
                 torch.tensor([command.yaw_rate_enu_rad_s], dtype=torch.float32),
-                dt_s,
             )
+            self._state = self._dynamics.step(self._state, vel_cmd, yaw_rate_cmd, dt_s)
+        self._t_s += dt_s
         hit = self._contact()
         if hit is not None:
             self.crashed = True

@@ -26,6 +26,7 @@ from runtime.camera.frame import Frame
 from runtime.faults.catalogue import Injection
 from sim.camera import CameraModel
 from sim.degradation import ProjectorOffModel
+from sim.dynamics import PX4_SIH_V1_16, DynamicsParams
 from sim.episode_args import check_level_seed
 from sim.world import make_worlds
 
@@ -54,6 +55,9 @@ MAX_LAG_S = 0.25
 # What the velocity controller gets while the vehicle-stuck fault acts (sim.sitl.faults).
 STUCK_COMMAND = VelocityCommand(vel_enu_m_s=np.zeros(3), yaw_rate_enu_rad_s=0.0)
 
+
+# The vehicle's velocity response, by name (SitlConfig.dynamics, --dynamics).
+DYNAMICS = {"px4": PX4_SIH_V1_16, "ideal": DynamicsParams()}
 
 @dataclass(frozen=True)
 class SitlConfig:
@@ -84,11 +88,16 @@ class SitlConfig:
     # PX4's start-up (UNINIT, then STANDBY, then the pre-arm checks passing) at this fraction of
     # its recorded 4.25 s / 5.27 s (sim.sitl.commander): 1.0 as PX4, 0 ready at once.
     boot_time_scale: float = 0.2
+    # The velocity response: "px4" (PX4 v1.16 SIH as identified, sim.dynamics.PX4_SIH_V1_16) or
+    # "ideal" (the batched sim's vehicle the shipped policies were trained on).
+    dynamics: str = "px4"
 
     def validate(self) -> None:
         """Raise ValueError naming the bad option."""
         if self.degrade not in DEGRADATIONS:
             raise ValueError(f"--degrade {self.degrade!r} must be one of {sorted(DEGRADATIONS)}")
+        if self.dynamics not in DYNAMICS:
+            raise ValueError(f"--dynamics {self.dynamics!r} must be one of {sorted(DYNAMICS)}")
         if not 0.0 <= self.boot_time_scale <= 1.0:
             raise ValueError(f"--boot-time-scale {self.boot_time_scale} must be in [0, 1]")
         if not -360.0 <= self.heading_deg <= 360.0:
@@ -117,7 +126,7 @@ class SitlVehicle:
         self._world = make_worlds(config.level, config.seed, 1)
         start = self._world.start_m[0].double().numpy()
         self._airframe = Airframe(self._world, start[:2], yaw_enu_rad=math.radians(config.heading_deg),
-                                  world_contact=not config.stand_in)  # fmt: skip
+                                  params=DYNAMICS[config.dynamics], world_contact=not config.stand_in)  # fmt: skip
         self._home_enu_m = self._airframe.home_enu_m
         self._kin = self._airframe.kinematics(self._t_boot_ns)
         geo = GeodeticHome()

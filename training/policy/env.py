@@ -489,7 +489,7 @@ class NavEnv:
             new = self.dynamics.step(state, vel_cmd_enu, cmd_flu[:, 3], dt_s, kick_force)
             # Crashed (and ended) envs stay where they are.
             frozen = (crashed | ~self.active).unsqueeze(-1)
-            state = QuadState(*(torch.where(frozen, getattr(state, f.name), getattr(new, f.name)) for f in fields(QuadState)))
+            state = QuadState(*(_keep_frozen(frozen, getattr(state, f.name), getattr(new, f.name)) for f in fields(QuadState)))
             crashed |= collides(self.world, state.pos_enu_m, cfg.vehicle_radius_m) & self.active
         self.state = state
         self.step_count += self.active.long()
@@ -569,3 +569,11 @@ class NavEnv:
     def trajectory_point(self) -> Tensor:
         """[N, 3] current positions (world ENU, m), for plots."""
         return self.state.pos_enu_m.detach().cpu().clone()
+
+
+def _keep_frozen(frozen: Tensor, old: Tensor | None, new: Tensor | None) -> Tensor | None:
+    """``new`` where the env moves on, ``old`` where it is frozen (a state field that is None,
+    e.g. an integral the controller does not keep, stays None)."""
+    if new is None:
+        return None
+    return torch.where(frozen, new if old is None else old, new)

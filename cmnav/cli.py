@@ -412,7 +412,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--inject", action="append", default=[], metavar="KIND@SECONDS",
         help="inject a fault SECONDS after offboard start (repeatable): camera-stall, camera-garbage, "
         "camera-blackout, telemetry-loss, pilot-takeover, offboard-refused@0, inference-overrun, nan-action, "
-        "geofence, runtime-kill, vehicle-stuck; the summary then lists each fault's trip, detection time and stop time",
+        "geofence, runtime-kill (SIGKILL of the runtime: the autopilot's failsafe decides), runtime-stop (SIGTERM "
+        "to the runtime, as systemd sends: it brakes to a hover, then commands Hold), vehicle-stuck; the summary "
+        "then lists each fault's trip, detection time and stop time.  With --autopilot the world follower injects "
+        "the camera faults on the frames it serves; telemetry-loss, pilot-takeover, offboard-refused and "
+        "vehicle-stuck need our SITL vehicle",
     )  # fmt: skip
     sitl.add_argument("--autopilot", metavar="URL",
                       help="fly an external autopilot (PX4 SITL) instead of our vehicle: the camera world follows its "

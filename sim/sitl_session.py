@@ -9,11 +9,14 @@ then the crash time in ground truth, and ``crash_detect_ms`` how long the runtim
 on it (its ``tracking`` or ``vehicle_fault`` trip; null if it never did).
 
 Fault injection (``--inject KIND@SECONDS``, ``runtime.faults.catalogue``): each fault goes to the process
-where it happens (vehicle or runtime); ``runtime-kill`` is done here, SIGKILL to the runtime's
-PID SECONDS after the vehicle entered OFFBOARD (read from the vehicle's live status file).  When
-a faulted flight does not end in a landing, the vehicle runs FAULT_OBSERVE_S longer, so ground
-truth covers the response even when the runtime stopped early (pilot takeover, kill, lost link);
-the summary gets a ``faults`` list measured on ground truth (:func:`fault_records`).
+where it happens (vehicle or runtime; with ``--autopilot`` the camera faults go to the world
+follower, which serves the frames); ``runtime-kill`` and ``runtime-stop`` are done here, SIGKILL
+resp. SIGTERM to the runtime's PID SECONDS after the vehicle entered OFFBOARD (read from the live
+status file of the vehicle or the follower).  SIGKILL leaves the vehicle to its offboard-loss
+failsafe; on SIGTERM the runtime stops as it would under systemd (hover, then Hold) and writes
+its summary.  When a faulted flight does not end in a landing, the vehicle runs FAULT_OBSERVE_S
+longer, so ground truth covers the response even when the runtime stopped early (pilot takeover,
+kill, stop, lost link); the summary gets a ``faults`` list measured on ground truth (:func:`fault_records`).
 """
 
 from __future__ import annotations
@@ -43,7 +46,8 @@ from runtime.model import ModelLoadError, PolicyModel, check_outputs_finite
 from runtime.service.paths import directory_problem
 
 from .episode_args import check_level_seed
-from .fault_report import fault_records, runtime_trip_after, vehicle_failsafe_trip
+from .fault_report import RuntimeSignal, fault_records, runtime_trip_after, vehicle_failsafe_trip
+from .follower.faults import follower_injection_problem
 from .follower.url import AutopilotUrlError, parse_autopilot_url
 from .plot import plot_top_view
 
@@ -140,9 +144,10 @@ class SitlRequest:
         return [arg for i in self.injections if i.site == site for arg in ("--inject", str(i))]
 
     @property
-    def kill_at_s(self) -> float | None:
-        """When to SIGKILL the runtime (s after the vehicle's OFFBOARD entry), or None."""
-        return next((i.at_s for i in self.injections if i.kind == FaultKind.RUNTIME_KILL), None)
+    def runtime_signal(self) -> Injection | None:
+        """The orchestrator's fault, sent SECONDS after the vehicle's OFFBOARD entry: runtime-kill
+        (SIGKILL) or runtime-stop (SIGTERM), or None."""
+        return next((i for i in self.injections if i.site == FaultSite.ORCHESTRATOR), None)
 
 
 def free_port(kind: int) -> int:
@@ -239,7 +244,7 @@ def _run_processes(
         world_name, ready_timeout_s = "the SITL vehicle", VEHICLE_READY_TIMEOUT_S
     else:  # the follower waits for the autopilot to be armable; its own error names what is missing
         world_name, ready_timeout_s = "the world follower", VEHICLE_READY_TIMEOUT_S + 5.0
-    t_kill_s = None
+    signalled = None
     vehicle = runtime = None
     try:
         with signals.deferred():  # a child started is a child whose PID we hold
@@ -258,7 +263,7 @@ def _run_processes(
                 stdout=runtime_out, stderr=subprocess.STDOUT, env=env, start_new_session=True,
             )  # fmt: skip
         log.info("runtime started (pid %d); flying", runtime.pid)
-        t_kill_s = _wait_runtime(runtime, request, status_path)
+        signalled = _wait_runtime(runtime, request, status_path)
         if request.injections and [mode for _, mode in _vehicle_mode_log(status_path)][-1:] != ["LAND"]:
             time.sleep(FAULT_OBSERVE_S)  # still flying: ground truth of the response, whatever the runtime did
     except SitlStopped:
@@ -273,7 +278,7 @@ def _run_processes(
         raise SitlError(f"stopped by {signals.received} before the flight started; nothing was armed")
     if not trace_path.exists():
         raise SitlError(f"{world_name} wrote no trace; its log ({sim_log}):\n{_tail(sim_log)}")
-    if t_kill_s is not None:
+    if signalled is not None and signalled.kind == FaultKind.RUNTIME_KILL:
         # Killed: the runtime could write no summary; its MCAP log is cut short but readable.
         log_path = next(run_dir.glob("*.mcap"), None)
         flight = {"outcome": "aborted", "abort_reason": "runtime_killed", "log": log_path and str(log_path), "watchdog_trips": []}
@@ -283,11 +288,13 @@ def _run_processes(
             raise SitlError(f"the runtime could not run the episode: {flight.get('error')} (its log: {runtime_log})")
         if signals.received is not None and flight.get("stop") is not None:
             flight["abort_reason"] = f"stopped by {signals.received}"  # forwarded to the runtime as SIGTERM
+        elif signalled is not None and flight.get("stop") is not None:
+            flight["abort_reason"] = "runtime_stopped"  # runtime-stop: our SIGTERM, not an operator's
     else:
         raise SitlError(f"the runtime wrote no summary (exit code {runtime.returncode if runtime else None}); "
                         f"its log ({runtime_log}):\n{_tail(runtime_log)}")  # fmt: skip
     trace = json.loads(trace_path.read_text())
-    return merge_summary(request, episode, flight, trace, run_dir, time.monotonic() - t_launch, t_kill_s)
+    return merge_summary(request, episode, flight, trace, run_dir, time.monotonic() - t_launch, signalled)
 
 
 def _start_world(
@@ -300,10 +307,11 @@ def _start_world(
     if request.autopilot_url is None:
         command = [sys.executable, "-m", "sim.sitl", "--mavlink-port", str(mavlink_port), "--camera-port", str(camera_port),
                    *world_files, *request.injections_at(FaultSite.VEHICLE)]  # fmt: skip
-    else:
+    else:  # the vehicle's faults that reach the follower are the camera's (autopilot_request refuses the rest)
         command = [sys.executable, "-m", "sim.follower", "--autopilot", request.autopilot_url,
                    *(["--allow-remote"] if request.allow_remote else []), "--camera-port", str(camera_port), *world_files,
-                   "--timeout-s", str(request.timeout_s), "--ready-timeout-s", str(VEHICLE_READY_TIMEOUT_S)]  # fmt: skip
+                   "--timeout-s", str(request.timeout_s), "--ready-timeout-s", str(VEHICLE_READY_TIMEOUT_S),
+                   *request.injections_at(FaultSite.VEHICLE)]  # fmt: skip
     with open(sim_log, "w") as sim_out:
         return subprocess.Popen(
             command, stdout=sim_out, stderr=subprocess.STDOUT, env=env, start_new_session=True,
@@ -312,25 +320,32 @@ def _start_world(
         )  # fmt: skip
 
 
-def _wait_runtime(runtime: subprocess.Popen, request: SitlRequest, status_path: Path) -> float | None:
-    """Wait for the runtime to finish (stopping it after the time limit); with a runtime-kill
-    injection, SIGKILL it on time.  Returns the kill time (time.monotonic s) or None."""
+def _wait_runtime(runtime: subprocess.Popen, request: SitlRequest, status_path: Path) -> RuntimeSignal | None:
+    """Wait for the runtime to finish (stopping it after the time limit); with a runtime-kill or
+    runtime-stop injection, SIGKILL / SIGTERM it on time (after SIGTERM it stops itself: hover,
+    Hold, summary).  Returns the signal sent, or None."""
     limit_s = request.timeout_s + RUNTIME_OVERHEAD_S
     deadline = time.monotonic() + limit_s
-    kill_at_s = request.kill_at_s
+    fault = request.runtime_signal
+    sent = None
     while runtime.poll() is None:
         if time.monotonic() > deadline:
             log.error("runtime did not finish within %.0f s; stopping it", limit_s)
-            return None
-        t_offboard_s = _vehicle_offboard_entry(status_path) if kill_at_s is not None else None
-        if t_offboard_s is not None and time.monotonic() >= t_offboard_s + kill_at_s:
-            runtime.kill()  # SIGKILL by PID: no handler runs, MAVSDK's setpoint re-sending dies with it
-            t_kill_s = time.monotonic()
-            runtime.wait()
-            log.warning("runtime (pid %d) killed %.2f s after the vehicle entered OFFBOARD", runtime.pid, t_kill_s - t_offboard_s)
-            return t_kill_s
+            return sent
+        t_offboard_s = _vehicle_offboard_entry(status_path) if fault is not None and sent is None else None
+        if t_offboard_s is not None and time.monotonic() >= t_offboard_s + fault.at_s:
+            if fault.kind == FaultKind.RUNTIME_KILL:
+                runtime.kill()  # SIGKILL by PID: no handler runs, MAVSDK's setpoint re-sending dies with it
+            else:
+                runtime.send_signal(signal.SIGTERM)  # by PID: what systemd sends; the runtime's stop handling runs
+            sent = RuntimeSignal(fault.kind, time.monotonic(), time.time())
+            log.warning("runtime (pid %d) sent %s %.2f s after the vehicle entered OFFBOARD (%s)", runtime.pid,
+                        "SIGKILL" if fault.kind == FaultKind.RUNTIME_KILL else "SIGTERM", sent.t_s - t_offboard_s, fault)  # fmt: skip
+            if fault.kind == FaultKind.RUNTIME_KILL:
+                runtime.wait()
+                return sent
         time.sleep(POLL_S)
-    return None
+    return sent
 
 
 def _vehicle_mode_log(status_path: Path) -> list[tuple[float, str]]:
@@ -347,12 +362,14 @@ def _vehicle_offboard_entry(status_path: Path) -> float | None:
 
 
 def merge_summary(
-    request: SitlRequest, episode: dict, flight: dict, trace: dict, run_dir: Path, wall_s: float, t_kill_s: float | None = None
-) -> dict:
+    request: SitlRequest, episode: dict, flight: dict, trace: dict, run_dir: Path, wall_s: float,
+    signalled: RuntimeSignal | None = None,
+) -> dict:  # fmt: skip
     """One summary from the runtime's view and the vehicle's ground truth; writes the plot.
 
     With injections it adds ``faults`` (:func:`sim.fault_report.fault_records`); a killed
-    runtime's trip, the vehicle's own failsafe Hold, is added to ``watchdog_trips`` from the trace.
+    runtime's trip (``signalled``: runtime-kill), the vehicle's own failsafe, is added to
+    ``watchdog_trips`` from the trace.  A stopped runtime's (runtime-stop) is its ``stop`` record.
     """
     positions = np.asarray(trace["pos_enu_m"], dtype=np.float64).reshape(-1, 3)
     t_s = np.asarray(trace["t_s"], dtype=np.float64)
@@ -377,8 +394,8 @@ def merge_summary(
         collision_enu_m=collision["pos_enu_m"] if collision else None,
     )  # fmt: skip
     trips = list(flight.get("watchdog_trips", []))
-    if t_kill_s is not None:
-        failsafe, _ = vehicle_failsafe_trip([(t, m) for t, m in trace["mode_log"]], t_kill_s)
+    if signalled is not None and signalled.kind == FaultKind.RUNTIME_KILL:
+        failsafe, _ = vehicle_failsafe_trip([(t, m) for t, m in trace["mode_log"]], signalled.t_s)
         trips += [failsafe] if failsafe is not None else []
     time_s = flight.get("time_s")
     if collision:
@@ -423,7 +440,7 @@ def merge_summary(
         summary["ground_truth"] = trace.get("verdict")
         summary["pose_stream"] = trace.get("pose_stream")
     if request.injections:
-        summary["faults"] = fault_records(request.injections, trace, flight, t_kill_s)
+        summary["faults"] = fault_records(request.injections, trace, flight, signalled)
     from runtime.report import write_report_quietly  # matplotlib (the extra `report`), only where a report is drawn
 
     # Before summary.json, which names it; a report that cannot be drawn only costs a warning.
@@ -446,15 +463,15 @@ def crash_timing(collision: dict, flight: dict, t_offboard: float | None) -> tup
 
 def autopilot_request(request: SitlRequest, url: str, offboard_port: int | None, allow_remote: bool) -> SitlRequest:
     """``request`` flown against an external autopilot: ValueError (naming the option) for a URL
-    it refuses (another host without ``allow_remote``), a bad port, or faults only our vehicle
-    can inject."""
+    it refuses (another host without ``allow_remote``), a bad port, or a fault only our vehicle
+    can inject (the world follower injects the camera faults: ``sim.follower.faults``)."""
     parse_autopilot_url(url, allow_remote)
     port = SitlRequest.offboard_port if offboard_port is None else offboard_port
     if not 0 < port < 65536:
         raise ValueError(f"--offboard-port {port} must be a UDP port in 1..65535 (PX4 SITL's offboard link: 14540)")
-    vehicle_faults = [str(i) for i in request.injections if i.site == FaultSite.VEHICLE]
-    if vehicle_faults:
-        raise ValueError(f"--inject {', '.join(vehicle_faults)}: only our SITL vehicle injects these, not an external autopilot")
+    for injection in request.injections:
+        if (problem := follower_injection_problem(injection)) is not None:
+            raise ValueError(problem)
     return replace(request, autopilot_url=url, offboard_port=port, allow_remote=allow_remote)
 
 
@@ -467,6 +484,10 @@ def run_sitl_cli(args: argparse.Namespace) -> int:
         return 2
     try:  # before any process starts: the children would refuse them with a traceback
         check_level_seed(args.level, args.seed)
+        signalled = [str(i) for i in injections if i.site == FaultSite.ORCHESTRATOR]
+        if len(signalled) > 1:
+            raise ValueError(f"--inject {', '.join(signalled)}: the runtime gets one signal per flight (runtime-kill "
+                             "or runtime-stop); fly them one at a time")  # fmt: skip
         if not (math.isfinite(args.timeout) and args.timeout > 0.0):
             raise ValueError(f"--timeout {args.timeout} must be a positive number of seconds")
     except ValueError as err:
@@ -494,9 +515,13 @@ def run_sitl_cli(args: argparse.Namespace) -> int:
         + (f"\nreport {summary['report']}" if summary.get("report") else "")
     )
     for fault in summary.get("faults", []):
+        if not fault["injected"]:
+            print(f"fault {fault['kind']}@{fault['at_s']:g}: not injected (the flight ended before its time)")
+            continue
         print(f"fault {fault['kind']}@{fault['at_s']:g}: trip {fault['cause']} detected in {fault['detect_ms']} ms, "
               f"{fault['trip_after_inject_ms']} ms after injection; {fault['response']}; stopped "
-              f"{fault['stopped_within_s']} s after injection; Hold after {fault['hold_entered_s']} s")  # fmt: skip
+              f"{fault['stopped_within_s']} s after injection; Hold after {fault['hold_entered_s']} s "
+              f"(commanded by the runtime after {fault['hold_commanded_s']} s)")  # fmt: skip
     if args.json:
         print(json.dumps(summary))
     return 0 if summary["outcome"] == "success" else 1

@@ -11,7 +11,14 @@ lasts for the rest of the flight.  Each kind is injected where it really happens
   :meth:`runtime.flight.FlightLoop.fly`; hooks in ``runtime.faults.injection``):
   ``inference-overrun`` and ``nan-action`` around the model step, ``geofence`` (the watchdog's
   fence shrinks);
-- by ``cmnav sitl`` itself: ``runtime-kill`` (SIGKILL of the runtime process).
+- by ``cmnav sitl`` itself, SECONDS after the camera world saw the autopilot enter OFFBOARD:
+  ``runtime-kill`` (SIGKILL of the runtime process: nothing it does survives; the autopilot's
+  offboard-loss failsafe decides) and ``runtime-stop`` (SIGTERM, what systemd and a shutdown send:
+  the runtime's own stop handling, ``runtime.programs.stop``, brakes to a hover, then commands Hold).
+
+With an external autopilot (``cmnav sitl --autopilot``, PX4 SITL) the world follower injects the
+camera faults on the frames it serves (``sim.follower.faults`` says which vehicle faults it cannot
+do, and why); the runtime's and the orchestrator's faults work as with our vehicle.
 
 Nothing is injected unless asked for explicitly: without ``--inject`` the runtime uses the
 model and the watchdog as they are, with no extra code on the path.  This module is the
@@ -38,6 +45,7 @@ class FaultKind(str, Enum):
     NAN_ACTION = "nan-action"  # the model step returns NaN
     GEOFENCE = "geofence"  # the fence shrinks: the vehicle (or the goal) is outside it
     RUNTIME_KILL = "runtime-kill"  # SIGKILL of the runtime process
+    RUNTIME_STOP = "runtime-stop"  # SIGTERM to the runtime process: its graceful stop (hover, then Hold)
     VEHICLE_STUCK = "vehicle-stuck"  # the vehicle stops following setpoints (motor failure, snagged frame)
 
 
@@ -58,8 +66,13 @@ FAULT_SITE: dict[FaultKind, FaultSite] = {
     FaultKind.NAN_ACTION: FaultSite.RUNTIME,
     FaultKind.GEOFENCE: FaultSite.RUNTIME,
     FaultKind.RUNTIME_KILL: FaultSite.ORCHESTRATOR,
+    FaultKind.RUNTIME_STOP: FaultSite.ORCHESTRATOR,
     FaultKind.VEHICLE_STUCK: FaultSite.VEHICLE,
 }
+
+
+# The faults of the camera itself: what reaches the runtime over the camera link.
+CAMERA_FAULTS: frozenset[FaultKind] = frozenset({FaultKind.CAMERA_STALL, FaultKind.CAMERA_GARBAGE, FaultKind.CAMERA_BLACKOUT})
 
 
 class InjectionError(ValueError):

@@ -8,6 +8,7 @@ runs it with the runtime).
 
 The package's modules: ``url`` (the --autopilot URL, no MAVLink), ``pose_link`` (the MAVLink pose
 stream), ``placement`` (room and goal at the autopilot's home and heading), ``judge`` (contact,
-geofence, goal, timeout) and ``follower`` (the process).  Nothing is imported here, so that the URL
+geofence, goal, timeout), ``faults`` (the camera faults it injects with an external autopilot,
+and why not the others) and ``follower`` (the process).  Nothing is imported here, so that the URL
 check stays importable where pymavlink is absent.
 """

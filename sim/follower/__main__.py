@@ -7,6 +7,7 @@ import logging
 import sys
 from pathlib import Path
 
+from runtime.faults.catalogue import CAMERA_FAULTS, FaultSite, parse_injection
 from sim.sitl.camera_server import CameraPortError
 from sim.sitl.vehicle import DEGRADATIONS, start_world_process
 
@@ -41,13 +42,18 @@ def parse_args(argv: list[str] | None = None) -> FollowerConfig:
                         help=f"offboard time limit the judge applies (s, default {FollowerConfig.timeout_s:g})")
     parser.add_argument("--ready-timeout-s", type=float, default=FollowerConfig.ready_timeout_s,
                         help=f"how long to wait for the autopilot (s, default {FollowerConfig.ready_timeout_s:g})")
+    parser.add_argument("--inject", action="append", default=[], metavar="KIND@SECONDS",
+                        help="inject a camera fault on the served frames SECONDS after the autopilot's first OFFBOARD "
+                        f"(seen in its HEARTBEAT; repeatable; kinds: {', '.join(sorted(k.value for k in CAMERA_FAULTS))})")  # fmt: skip
     args = parser.parse_args(argv)
     try:
         host, port = parse_autopilot_url(args.autopilot, args.allow_remote)
+        injections = tuple(parse_injection(text, [FaultSite.VEHICLE]) for text in args.inject)
         config = FollowerConfig(host, port, args.camera_port, args.level, args.seed, args.episode_json, args.trace,
-                                args.status_json, args.camera_hz, args.degrade, args.timeout_s, args.ready_timeout_s)  # fmt: skip
+                                args.status_json, args.camera_hz, args.degrade, args.timeout_s, args.ready_timeout_s,
+                                injections)  # fmt: skip
         config.validate()
-    except (AutopilotUrlError, ValueError) as err:
+    except (AutopilotUrlError, ValueError) as err:  # InjectionError is a ValueError
         parser.error(str(err))
     return config
 

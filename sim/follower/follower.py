@@ -9,6 +9,10 @@ judged (:class:`Judge`); after a contact, every frame carries ``meta["contact"]`
 learns of it over the camera link (the autopilot flies on in its empty world and cannot tell).
 No frame is served at a pose older than POSE_STALE_S (a dead pose link must look like a dead
 camera to the runtime, not like a vehicle hovering still).
+Camera faults (``--inject camera-stall@S`` etc., ``sim.follower.faults``) act on the served
+frames with our vehicle's hooks (``sim.sitl.faults.VehicleFaults``), S seconds after the
+autopilot's first OFFBOARD as the follower sees it in HEARTBEAT; the trace's ``injections`` say when
+each first acted, as our vehicle's do.
 On stop it writes the trace JSON in our vehicle's format plus the verdict, the placement and
 the pose-stream counts.
 
@@ -30,15 +34,18 @@ import numpy as np
 
 from runtime.camera.frame import Frame
 from runtime.contract.frames import euler_from_quat, ned_to_enu, quat_ned_frd_to_enu_flu
+from runtime.faults.catalogue import Injection
 from sim.camera import CameraModel
 from sim.sitl.airframe import LANDING_GEAR_HEIGHT_M
 from sim.sitl.camera_feed import CameraFeed
 from sim.sitl.camera_server import FrameServer
+from sim.sitl.faults import VehicleFaults
 from sim.sitl.kinematics import Kinematics
 from sim.sitl.records import Trace, episode_record, write_json_atomic
 from sim.sitl.vehicle import DEGRADATIONS
 from sim.world import make_worlds
 
+from .faults import check_follower_injections
 from .judge import Judge
 from .placement import Placement, place_room
 from .pose_link import READY_SYSTEM_STATES, PoseLink
@@ -51,6 +58,9 @@ TRACE_PERIOD_S = 0.015  # every pose at the requested 50 Hz, with room for jitte
 # A frame rendered at a pose older than this would show the runtime a view that no longer is:
 # none is served (the runtime's stale-frame watchdog then trips, as for a dead camera).
 POSE_STALE_S = 0.5
+# PX4 sends HEARTBEAT at 1 Hz on every link: the mode log sees a change up to this late, and a
+# mode held for less may not appear at all (written to the trace for sim.fault_report).
+AUTOPILOT_HEARTBEAT_PERIOD_S = 1.0
 
 
 class FollowerNotReadyError(RuntimeError):
@@ -61,7 +71,8 @@ class FollowerNotReadyError(RuntimeError):
 class FollowerConfig:
     """One follower: where the autopilot's MAVLink arrives (host, port), the camera port on
     127.0.0.1, the world (level, seed), output files, camera rate (Hz), depth degradation, the
-    offboard time limit the judge applies (s) and how long to wait for the autopilot (s)."""
+    offboard time limit the judge applies (s), how long to wait for the autopilot (s) and the
+    camera faults to inject (times from the autopilot's first OFFBOARD)."""
 
     listen_host: str
     listen_port: int
@@ -75,9 +86,11 @@ class FollowerConfig:
     degrade: str = "none"
     timeout_s: float = 60.0
     ready_timeout_s: float = 60.0
+    injections: tuple[Injection, ...] = ()
 
     def validate(self) -> None:
-        """Raise ValueError naming the bad option."""
+        """Raise ValueError naming the bad option (an InjectionError for a fault it cannot inject)."""
+        check_follower_injections(self.injections)
         if self.degrade not in DEGRADATIONS:
             raise ValueError(f"--degrade {self.degrade!r} must be one of {sorted(DEGRADATIONS)}")
         if self.level < 0:
@@ -112,6 +125,7 @@ class WorldFollower:
         self._feed: CameraFeed | None = None
         self._contact: dict | None = None
         self._stale_frames = 0
+        self._faults = VehicleFaults(config.injections, config.seed)
 
     @property
     def link_port(self) -> int:
@@ -226,8 +240,10 @@ class WorldFollower:
         t_s = time.monotonic()
         self._mode_log.append((t_s, mode))
         log.info("autopilot mode %s", mode)
-        if mode == "OFFBOARD" and self._judge is not None:
-            self._judge.offboard_entered(t_s, self._kin)
+        if mode == "OFFBOARD":
+            self._faults.note_offboard(t_s)  # only the first entry counts
+            if self._judge is not None:
+                self._judge.offboard_entered(t_s, self._kin)
         if self._config.status_json is not None:
             write_json_atomic(self._config.status_json, {"mode_log": [[t, m] for t, m in self._mode_log]})
 
@@ -243,14 +259,19 @@ class WorldFollower:
         self._trace.sample(t_s, kin.pos_enu_m, kin.vel_enu_m_s, kin.yaw_enu_rad)
 
     def _publish(self, frame: Frame) -> None:
-        """Camera thread: no frame at a stale pose; after a contact every frame says so (the
-        runtime's only way to know)."""
+        """Camera thread: no frame at a stale pose; an injected camera fault acts on what is
+        served; after a contact every frame says so (the runtime's only way to know)."""
         kin = self._kin
+        # Judged on the rendered frame's stamp, before a fault: a garbage frame stamped in the
+        # future is a camera fault to serve, not a stale pose.
         age_s = (frame.t_capture_ns - kin.t_ns) * 1e-9
         if age_s > POSE_STALE_S:
             self._stale_frames += 1
             if self._stale_frames == 1 or self._stale_frames % 100 == 0:
                 log.error("the autopilot's pose is %.1f s old: serving no frames (%d withheld so far)", age_s, self._stale_frames)
+            return
+        frame = self._faults.camera_frame(frame, time.monotonic())
+        if frame is None:  # camera-stall: the link stays open and silent
             return
         contact = self._contact
         if contact is not None:
@@ -261,8 +282,9 @@ class WorldFollower:
 
     def _write_trace(self) -> None:
         v = self._link.view
-        record = self._trace.to_record(self._mode_log, self._server.served(), {})
+        record = self._trace.to_record(self._mode_log, self._server.served(), self._faults.injected)
         record["verdict"] = self._judge.verdict.record() if self._judge is not None else None
+        record["mode_log_period_s"] = AUTOPILOT_HEARTBEAT_PERIOD_S
         record["placement"] = self._placement.record() if self._placement is not None else None
         rate_hz = v.position_rate_hz()
         record["pose_stream"] = {"position_messages": v.position_messages, "attitude_messages": v.attitude_messages,

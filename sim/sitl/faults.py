@@ -20,6 +20,10 @@ vehicle's own first OFFBOARD entry; ``offboard-refused`` (only ``@0``) holds fro
   telemetry flowing; only the runtime's tracking check can tell.  The autopilot's own modes (Hold,
   Land) still fly, so the test flight can land afterwards.
 
+The world follower (``python -m sim.follower --inject``, flying an external autopilot) applies the
+same camera hooks to the frames it serves, its times counted from the autopilot's first OFFBOARD
+as the follower sees it in HEARTBEAT (``sim.follower.faults``).
+
 Threads: the camera hooks run in the render thread, the others in the physics thread; they share
 only the OFFBOARD entry time (a float written once) and ``injected`` (one key per kind).
 """
@@ -34,7 +38,7 @@ import numpy as np
 
 from runtime.camera.frame import Frame
 from runtime.contract.images import invalid_depth_fraction
-from runtime.faults.catalogue import FaultKind, FaultSite, Injection, InjectionError
+from runtime.faults.catalogue import CAMERA_FAULTS, FaultKind, FaultSite, Injection, InjectionError
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +64,7 @@ class VehicleFaults:
 
     @property
     def camera_faults(self) -> bool:
-        return any(k in self._at_s for k in (FaultKind.CAMERA_STALL, FaultKind.CAMERA_GARBAGE, FaultKind.CAMERA_BLACKOUT))
+        return any(k in self._at_s for k in CAMERA_FAULTS)
 
     @property
     def refuses_offboard(self) -> bool:

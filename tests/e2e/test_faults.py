@@ -116,3 +116,22 @@ def test_runtime_kill_ends_in_the_vehicles_failsafe_landing(goal_seeker, tmp_pat
     heights = [p[2] for t, p in zip(trace["t_s"], trace["pos_enu_m"]) if t >= trace["mode_log"][-1][0]]
     assert heights and heights[-1] < heights[0] - 0.3, heights[:3] + heights[-3:]  # descending, not holding
     assert _count_messages(summary["log"]) > 10  # cut short, still readable
+
+
+def test_runtime_stop_ends_in_the_runtimes_own_hover_and_hold(goal_seeker, tmp_path):
+    """SIGTERM (what systemd sends) mid-episode: the runtime brakes, commands Hold itself and
+    records the stop; the vehicle's offboard-loss failsafe never fires."""
+    summary = _fly(goal_seeker, tmp_path, "runtime-stop@2")
+    assert summary["outcome"] == "aborted" and summary["abort_reason"] == "runtime_stopped"
+    stop = summary["stop"]
+    assert (stop["cause"], stop["phase"], stop["action"]) == ("SIGTERM", "episode", "hover_then_hold"), stop
+    (fault,) = summary["faults"]
+    assert fault["injected"] and fault["stop"] == stop
+    assert (fault["cause"], fault["response"]) == ("stop_signal", "hover_then_hold")
+    assert fault["detect_ms"] >= 0.0 and fault["trip_after_inject_ms"] == fault["detect_ms"], fault  # signal -> handler
+    assert fault["stopped_after_trip_s"] is not None and fault["hold_entered_s"] is not None, fault
+    trace = json.loads((Path(summary["run_dir"]) / "trace.json").read_text())
+    modes = [mode for _, mode in trace["mode_log"]]
+    assert modes[modes.index("OFFBOARD") :] == ["OFFBOARD", "HOLD"], modes
+    assert not any("ailsafe" in text for _, text in trace["events"])
+    assert _count_messages(summary["log"]) > 10

@@ -2,7 +2,8 @@
 autopilot (``--stand-in``: no camera, no room to hit, a second MAVLink link streaming its pose)
 and ``cmnav sitl --autopilot`` runs the follower and the runtime against it — two MAVLink
 consumers (the runtime's MAVSDK offboard link, the follower's pose link), the camera rendered at
-the followed pose, crash reporting over the camera link.  Real processes over loopback."""
+the followed pose, crash reporting over the camera link, and the PX4 campaign's fault scenarios
+(a camera stall injected by the follower, a SIGTERM to the runtime).  Real processes over loopback."""
 
 from __future__ import annotations
 
@@ -30,9 +31,11 @@ def goal_seeker(tmp_path_factory) -> Path:
     return path
 
 
-def _fly(model: Path, out: Path, level: int, seed: int, *stand_in_args: str) -> tuple[int, dict, str, dict]:
-    """Stand-in vehicle + ``cmnav sitl --autopilot``; returns (exit code, summary, stderr, the
-    stand-in's own trace)."""
+def _fly(
+    model: Path, out: Path, level: int, seed: int, *stand_in_args: str, inject: tuple[str, ...] = ()
+) -> tuple[int, dict, str, dict]:
+    """Stand-in vehicle + ``cmnav sitl --autopilot`` (with ``--inject`` each of ``inject``);
+    returns (exit code, summary, stderr, the stand-in's own trace)."""
     offboard_port, pose_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
     trace_path = out / "stand_in_trace.json"
     with open(out / "stand_in.log", "w") as log:
@@ -46,7 +49,7 @@ def _fly(model: Path, out: Path, level: int, seed: int, *stand_in_args: str) -> 
         proc = subprocess.run(
             [sys.executable, "-m", "cmnav", "sitl", "--model", str(model), "--out", str(out / "runs"), "--json",
              "--autopilot", f"udp://127.0.0.1:{pose_port}", "--offboard-port", str(offboard_port),
-             "--level", str(level), "--seed", str(seed), "--timeout", "30"],
+             "--level", str(level), "--seed", str(seed), "--timeout", "30", *(a for i in inject for a in ("--inject", i))],
             capture_output=True, text=True, timeout=240,
         )  # fmt: skip
     finally:
@@ -103,3 +106,46 @@ def test_a_contact_in_the_followed_world_ends_the_flight_in_hold(goal_seeker, tm
     assert modes[i_offboard][0] < summary["collision"]["t_s"] < modes[i_offboard + 1][0]  # Hold came after the contact
     report = replay_log(summary["log"])
     assert report.same_model and report.steps == summary["frames"] and report.max_abs_diff <= 1e-5
+
+
+def _no_failsafe(stand_in: dict) -> None:
+    """The autopilot stopped in the runtime's Hold, never in its own offboard-loss failsafe."""
+    assert "POSCTL" not in _modes_after_offboard(stand_in), stand_in["mode_log"]
+    assert not any("ailsafe" in text for _, text in stand_in["events"]), stand_in["events"]
+
+
+def test_a_camera_stall_injected_by_the_follower_ends_in_hover_and_hold(goal_seeker, tmp_path):
+    code, summary, stderr, stand_in = _fly(goal_seeker, tmp_path, 0, 1, inject=("camera-stall@2",))
+    assert code == 1, f"exit {code}; summary {summary}; stderr:\n{stderr[-3000:]}"
+    assert summary["outcome"] == "aborted" and summary["abort_reason"] == "stale_frame"
+    (fault,) = summary["faults"]
+    assert fault["injected"] and fault["t_inject_s"] >= 2.0, fault
+    assert (fault["cause"], fault["response"]) == ("stale_frame", "hover_then_hold"), fault
+    # The follower's mode log comes from the 1 Hz HEARTBEAT and misses the runtime's Hold, which
+    # lasts until its landing command: the record takes Hold from the runtime's accepted command.
+    assert fault["trip_after_inject_ms"] is not None and fault["hold_commanded_s"] is not None, fault
+    assert fault["stopped_after_trip_s"] is not None, fault
+    # The follower's trace says when the stall began; no frame captured after it was served.
+    trace = json.loads((Path(summary["run_dir"]) / "trace.json").read_text())
+    (stall,) = trace["injections"]
+    assert stall["kind"] == "camera-stall" and max(trace["frame_t_s"]) < stall["t_s"]
+    # The autopilot: offboard, the runtime's Hold after the trip, then the runtime's landing.
+    assert _modes_after_offboard(stand_in)[:3] == ["OFFBOARD", "HOLD", "LAND"]
+    _no_failsafe(stand_in)
+
+
+def test_a_sigterm_to_the_runtime_ends_in_its_own_stop_and_hold(goal_seeker, tmp_path):
+    code, summary, stderr, stand_in = _fly(goal_seeker, tmp_path, 0, 1, inject=("runtime-stop@2",))
+    assert code == 1, f"exit {code}; summary {summary}; stderr:\n{stderr[-3000:]}"
+    assert summary["outcome"] == "aborted" and summary["abort_reason"] == "runtime_stopped"
+    stop = summary["stop"]
+    assert (stop["cause"], stop["phase"], stop["action"]) == ("SIGTERM", "episode", "hover_then_hold"), stop
+    (fault,) = summary["faults"]
+    assert fault["injected"] and fault["stop"] == stop, fault
+    assert (fault["cause"], fault["response"]) == ("stop_signal", "hover_then_hold"), fault
+    assert fault["hold_entered_s"] is not None and fault["stopped_within_s"] is not None, fault
+    runtime_log = (Path(summary["run_dir"]) / "runtime.log").read_text()
+    assert "stopped on SIGTERM while episode: hover_then_hold" in runtime_log and "Traceback" not in runtime_log
+    # The runtime's Hold is the last word: it exits without landing, the autopilot hovers in Hold.
+    assert _modes_after_offboard(stand_in) == ["OFFBOARD", "HOLD"], stand_in["mode_log"]
+    _no_failsafe(stand_in)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from runtime.faults.catalogue import parse_injection
+from runtime.faults.catalogue import FaultSite, parse_injection
 from sim.sitl_session import SitlRequest, autopilot_request, merge_summary, run_sitl_cli
 
 from tests.sim.test_sitl_session import EPISODE, FLIGHT, _trace
@@ -51,10 +51,26 @@ def test_bad_offboard_port_is_named(port):
         autopilot_request(SitlRequest(Path("m.onnx"), 0, 0, 10.0, Path("out")), "udp://127.0.0.1:14550", port, False)
 
 
-def test_vehicle_faults_are_refused_with_an_external_autopilot():
-    request = SitlRequest(Path("m.onnx"), 0, 0, 10.0, Path("out"), (parse_injection("camera-stall@2"), parse_injection("nan-action@1")))
-    with pytest.raises(ValueError, match="camera-stall@2: only our SITL vehicle"):
-        autopilot_request(request, "udp://127.0.0.1:14550", None, False)
+def test_camera_runtime_and_signal_faults_fly_with_an_external_autopilot():
+    injections = tuple(parse_injection(t) for t in ("camera-stall@2", "camera-garbage@3", "camera-blackout@4",
+                                                       "nan-action@1", "runtime-stop@5"))  # fmt: skip
+    request = autopilot_request(SitlRequest(Path("m.onnx"), 0, 0, 10.0, Path("out"), injections), "udp://127.0.0.1:14550", None, False)
+    # The camera faults go to the follower (the vehicle's site), the others where they happen.
+    assert request.injections_at(FaultSite.VEHICLE) == ["--inject", "camera-stall@2", "--inject", "camera-garbage@3",
+                                                        "--inject", "camera-blackout@4"]  # fmt: skip
+    assert request.injections_at(FaultSite.RUNTIME) == ["--inject", "nan-action@1"]
+
+
+@pytest.mark.parametrize("inject, reason", [
+    ("telemetry-loss@2", "that link is PX4's own"), ("pilot-takeover@2", "RC mode switch"),
+    ("offboard-refused@0", "PX4 itself decides"), ("vehicle-stuck@2", "PX4's dynamics (SIH)"),
+])  # fmt: skip
+def test_faults_the_follower_cannot_do_are_refused_with_one_line(tmp_path, capsys, inject, reason):
+    assert run_sitl_cli(_args(tmp_path, "udp://127.0.0.1:14550", inject=["camera-stall@1", inject])) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith(f"cmnav sitl: --inject {inject}: not with an external autopilot: ") and reason in line
+    assert "cmnav sitl without --autopilot" in line
+    assert not any(tmp_path.iterdir())  # nothing ran, nothing written
 
 
 def test_summary_of_a_followed_flight_has_ground_truth_and_autopilot(tmp_path):

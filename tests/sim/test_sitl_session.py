@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from runtime.faults.catalogue import FaultKind, FaultSite, Injection, parse_injection
+from sim.fault_report import RuntimeSignal
 from sim.sitl_session import SitlError, SitlRequest, merge_summary, run_sitl, run_sitl_cli
 
 EPISODE = {
@@ -83,7 +84,7 @@ def test_killed_runtime_gets_the_vehicles_failsafe_trip_and_fault_record(tmp_pat
     trace["vel_enu_m_s"] = [[1.0 if t < 8.5 else 0.0, 0.0, 0.0] for t in trace["t_s"]]
     request = SitlRequest(Path("m.onnx"), 1, 7, 30.0, tmp_path, (Injection(FaultKind.RUNTIME_KILL, 2.0),))
     flight = {"outcome": "aborted", "abort_reason": "runtime_killed", "log": None, "watchdog_trips": []}
-    summary = merge_summary(request, EPISODE, flight, trace, tmp_path, 30.0, t_kill_s=7.0)
+    summary = merge_summary(request, EPISODE, flight, trace, tmp_path, 30.0, RuntimeSignal(FaultKind.RUNTIME_KILL, 7.0, 1e9))
     assert summary["abort_reason"] == "runtime_killed"
     (trip,) = summary["watchdog_trips"]
     assert trip["cause"] == "offboard_loss_failsafe" and trip["detect_ms"] == pytest.approx(1050.0)
@@ -97,7 +98,19 @@ def test_injections_go_to_the_process_where_the_fault_happens(tmp_path):
         parse_injection(t) for t in ("camera-stall@2", "nan-action@3", "runtime-kill@4")))  # fmt: skip
     assert request.injections_at(FaultSite.VEHICLE) == ["--inject", "camera-stall@2"]
     assert request.injections_at(FaultSite.RUNTIME) == ["--inject", "nan-action@3"]
-    assert request.kill_at_s == 4.0
+    assert request.runtime_signal == parse_injection("runtime-kill@4")
+    stop = SitlRequest(Path("m.onnx"), 0, 1, 10.0, tmp_path, (parse_injection("runtime-stop@2"),))
+    assert stop.runtime_signal == parse_injection("runtime-stop@2")
+    assert stop.injections_at(FaultSite.VEHICLE) == stop.injections_at(FaultSite.RUNTIME) == []
+
+
+def test_one_signal_per_flight(tmp_path, capsys):
+    args = argparse.Namespace(model="m.onnx", level=0, seed=0, timeout=10.0, out=str(tmp_path), json=False,
+                              inject=["runtime-kill@3", "runtime-stop@2"])  # fmt: skip
+    assert run_sitl_cli(args) == 2
+    err = capsys.readouterr().err
+    assert "runtime-kill@3, runtime-stop@2: the runtime gets one signal per flight" in err
+    assert not any(tmp_path.iterdir())
 
 
 def test_bad_injection_is_refused_before_anything_starts(tmp_path, capsys):

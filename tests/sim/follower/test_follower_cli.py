@@ -34,6 +34,16 @@ def test_bad_values_are_named(extra, named, capsys):
     assert exit_info.value.code == 2 and named in capsys.readouterr().err
 
 
+def test_camera_faults_are_parsed_and_the_others_refused(capsys):
+    config = parse_args(BASE + ["--inject", "camera-stall@3", "--inject", "camera-blackout@1.5"])
+    assert [str(i) for i in config.injections] == ["camera-stall@3", "camera-blackout@1.5"]
+    for inject, named in (("vehicle-stuck@2", "not with an external autopilot"), ("nan-action@2", "unknown fault kind"),
+                          ("camera-stall", "expected KIND@SECONDS")):  # fmt: skip
+        with pytest.raises(SystemExit) as exit_info:
+            parse_args(BASE + ["--inject", inject])
+        assert exit_info.value.code == 2 and named in capsys.readouterr().err
+
+
 def test_an_absent_autopilot_is_named_and_the_trace_still_written(tmp_path):
     config = FollowerConfig("127.0.0.1", 0, 0, 0, 1, tmp_path / "ep.json", tmp_path / "trace.json", ready_timeout_s=0.3)
     follower = WorldFollower(config)

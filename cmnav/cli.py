@@ -206,6 +206,9 @@ def _policy_train_config(args: argparse.Namespace, encoder_dir: str | None, corr
 def _cmd_train_policy(args: argparse.Namespace) -> int:
     if args.teacher is not None:
         return _train_student(args)
+    if args.field:
+        print("cmnav train policy: --field trains a student by DAgger: give --teacher TEACHER_DIR", file=sys.stderr)
+        return 2
     from training.policy.train import train_policy
 
     out = train_policy(_policy_train_config(args, args.encoder, args.corruption))
@@ -223,7 +226,7 @@ def _train_student(args: argparse.Namespace) -> int:
         max_wall_s=None if args.minutes is None else args.minutes * 60.0,
         **_given(args, "device", "seed", "corruption", "minibatches", "min_level", "max_level", "checkpoint_every", "precision",
                  "lr", "beta_start", "beta_decay_env_steps", "projector_off_episode_fraction", "near_weight", "near_m",
-                 num_envs="envs", rollout_steps="rollout", env_steps="steps"),
+                 num_envs="envs", rollout_steps="rollout", env_steps="steps", field_conditions="field"),
     )  # fmt: skip
     out = train_dagger(config)
     print(f"student checkpoint in {out}")
@@ -634,6 +637,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "first step, e.g. with --init-from a distilled student)")  # fmt: skip
     _config_option(policy, "--projector-off-episode-fraction", "training.policy.dagger:DaggerConfig.projector_off_episode_fraction", type=float,
                    help="DAgger: share of episodes whose depth is lost like a D455 without its projector")
+    _config_option(policy, "--field", "training.policy.dagger:DaggerConfig.field_conditions", action="store_true",
+                   help="DAgger: train in the field, Table II's `field` condition (stereo depth in place of --corruption, the "
+                   "gray camera's exposure and noise, image-to-command latency, PX4's randomized response, EKF2-like "
+                   "state estimates, examples/cmnav.toml's speed caps)")  # fmt: skip
     _config_option(policy, "--min-level", "training.policy.dagger:DaggerConfig.min_level", type=int,
                    help="DAgger: the lowest obstacle level; each episode's level is drawn uniformly from "
                    "[--min-level, --max-level]")  # fmt: skip
@@ -701,7 +708,7 @@ def build_parser() -> argparse.ArgumentParser:
     _config_option(eval_policy, "--levels", "training.policy.evaluate:PolicyEvalConfig.levels", type=int_list, help="comma-separated")
     _config_option(eval_policy, "--conditions", "training.policy.evaluate:PolicyEvalConfig.conditions", type=_name_tuple,
                    help="comma-separated subset of clean,corrupted,projector-off,stereo,stereo-projector-off,"
-                   "patches-1-50px,patches-100px")  # fmt: skip
+                   "patches-1-50px,patches-100px,field")  # fmt: skip
     _config_option(eval_policy, "--episodes", "training.policy.evaluate:PolicyEvalConfig.episodes", type=int, help="episodes per cell")
     _config_option(eval_policy, "--batch-envs", "training.policy.evaluate:PolicyEvalConfig.batch_envs", type=int, help="episodes flown at once")
     _config_option(eval_policy, "--device", "training.policy.evaluate:PolicyEvalConfig.device", help="cpu or cuda")

@@ -13,6 +13,7 @@
 set -euo pipefail
 build=$(realpath "$1"); MODEL=$2; LEVELS=${3:-"0"}; SEEDS=${4:-20}
 OUT=${5:-runs/px4-campaign/$(basename "$MODEL" .onnx)}
+mkdir -p "$OUT" && OUT=$(realpath "$OUT")  # PX4 runs in its own working folder: every path absolute
 SEED_START=${SEED_START:-7001}
 TIMEOUT_S=${TIMEOUT_S:-20}
 INJECT=${INJECT:-}

@@ -184,14 +184,19 @@ class QuadrotorDynamics:
         yaw_rate_cmd_rad_s: Tensor,
         dt_s: float,
         kick_force_n: Tensor | None = None,
+        per_env: dict[str, Tensor] | None = None,
     ) -> QuadState:
         """Advance by dt_s seconds.
 
         vel_cmd_enu_m_s [B, 3]: velocity setpoint, world ENU (m/s).  yaw_rate_cmd_rad_s [B]:
         yaw-rate setpoint (rad/s, + = counter-clockwise from above).  kick_force_n [B, 3]:
-        external force in world ENU (N) acting during this step, or None.
+        external force in world ENU (N) acting during this step, or None.  per_env: a value [B]
+        per env for any of :data:`PER_ENV_PARAMS` (e.g. from :func:`sample_dynamics`), in place of
+        ``params``' scalar; the others stay ``params``'.
         """
         p = self.params
+        if per_env:
+            return self._step_per_env(state, vel_cmd_enu_m_s, yaw_rate_cmd_rad_s, dt_s, kick_force_n, per_env)
         up = _unit_z_like(state.pos_enu_m)
 
         # Controller: desired acceleration, then desired thrust axis within the tilt cone.
@@ -245,21 +250,93 @@ class QuadrotorDynamics:
                          integral if p.velocity_integral_gain_1_s2 > 0.0 else state.vel_error_integral_m)
 
 
+    def _step_per_env(self, state: QuadState, vel_cmd_enu_m_s: Tensor, yaw_rate_cmd_rad_s: Tensor, dt_s: float,
+                      kick_force_n: Tensor | None, per_env: dict[str, Tensor]) -> QuadState:  # fmt: skip
+        """:meth:`step` with some parameters given per env ([B] tensors): the same controller and
+        vehicle, each scalar replaced by a column (a second copy of the arithmetic so that the
+        scalar path, which the SITL vehicle and the fit use, stays exactly as it was)."""
+        p = self.params
+        unknown = set(per_env) - set(PER_ENV_PARAMS)
+        if unknown:
+            raise ValueError(f"per-env dynamics parameters {sorted(unknown)} are not supported: choose from {PER_ENV_PARAMS}")
+        like = vel_cmd_enu_m_s
+
+        def col(name: str) -> Tensor:
+            """[B, 1] the per-env value, or the scalar broadcast."""
+            if name in per_env:
+                return per_env[name].to(dtype=like.dtype, device=like.device).reshape(-1, 1)
+            value = getattr(p, name)
+            if name == "vertical_velocity_gain_1_s" and value is None:
+                return col("velocity_gain_1_s")
+            return torch.full((like.shape[0], 1), float(value), dtype=like.dtype, device=like.device)
+
+        up = _unit_z_like(state.pos_enu_m)
+        error = vel_cmd_enu_m_s - state.vel_enu_m_s
+        gain = torch.cat([col("velocity_gain_1_s").expand(-1, 2), col("vertical_velocity_gain_1_s")], dim=-1)
+        accel_des = gain * error
+        feedforward = torch.tensor([p.drag_feedforward, p.drag_feedforward, 1.0], dtype=like.dtype, device=like.device)
+        drag_per_kg = col("linear_drag_kg_s") / p.mass_kg
+        accel_des = accel_des + drag_per_kg * feedforward * vel_cmd_enu_m_s
+        integral = state.integral()
+        gain_i = col("velocity_integral_gain_1_s2")
+        keeps_integral = "velocity_integral_gain_1_s2" in per_env or p.velocity_integral_gain_1_s2 > 0.0
+        if keeps_integral:
+            limit_m = p.velocity_integral_max_m_s2 / gain_i.clamp_min(1e-9)
+            integral = torch.minimum(torch.maximum(integral + error[:, :2] * dt_s, -limit_m), limit_m)
+            accel_des = accel_des + torch.cat([gain_i * integral, torch.zeros_like(integral[:, :1])], dim=-1)
+        accel_z = accel_des[:, 2].clamp(-p.max_accel_down_m_s2, p.max_accel_up_m_s2)
+        force_z = accel_z + GRAVITY_M_S2
+        accel_xy = accel_des[:, :2]
+        max_xy = torch.minimum(force_z * math.tan(p.max_tilt_rad), col("max_accel_horizontal_m_s2")[:, 0])
+        norm_xy = torch.linalg.vector_norm(accel_xy, dim=-1)
+        accel_xy = accel_xy * (max_xy / norm_xy.clamp_min(1e-9)).clamp(max=1.0).unsqueeze(-1)
+        force_des = torch.cat([accel_xy, force_z.unsqueeze(-1)], dim=-1)
+        axis_des = force_des / torch.linalg.vector_norm(force_des, dim=-1, keepdim=True)
+
+        axis = quat_rotate(state.quat_enu_flu, up)
+        axis_new = _slerp_unit(axis, axis_des, 1.0 - torch.exp(-dt_s / col("attitude_tau_s")))
+        roll, pitch, yaw = euler_from_quat(state.quat_enu_flu).unbind(-1)
+        yaw_rate = _yaw_rate_from_body_rates(roll, pitch, state.angvel_body_flu_rad_s)
+        yaw_follow = 1.0 - torch.exp(-dt_s / col("yaw_rate_tau_s")[:, 0])
+        yaw_rate_step = (col("yaw_rate_gain")[:, 0] * yaw_rate_cmd_rad_s - yaw_rate) * yaw_follow
+        max_step = col("max_yaw_accel_rad_s2")[:, 0] * dt_s
+        yaw_rate_new = yaw_rate + torch.minimum(torch.maximum(yaw_rate_step, -max_step), max_step)
+        quat_new = _quat_from_axis_yaw(axis_new, yaw + yaw_rate_new * dt_s)
+        angvel_new = quat_log(quat_multiply(quat_conjugate(state.quat_enu_flu), quat_new)) / dt_s
+
+        thrust = (force_des * axis_new).sum(dim=-1).clamp_min(0.0)
+        accel = thrust.unsqueeze(-1) * axis_new - GRAVITY_M_S2 * up - drag_per_kg * state.vel_enu_m_s
+        if kick_force_n is not None:
+            accel = accel + kick_force_n / p.mass_kg
+        vel_new = state.vel_enu_m_s + accel * dt_s
+        pos_new = state.pos_enu_m + vel_new * dt_s
+        if p.ground_contact:
+            on_ground = pos_new[:, 2] <= 0.0
+            pos_new = torch.cat([pos_new[:, :2], pos_new[:, 2:].clamp_min(0.0)], dim=-1)
+            vel_z = torch.where(on_ground, vel_new[:, 2].clamp_min(0.0), vel_new[:, 2])
+            vel_new = torch.cat([vel_new[:, :2], vel_z.unsqueeze(-1)], dim=-1)
+        return QuadState(pos_new, vel_new, quat_new, angvel_new, integral if keeps_integral else state.vel_error_integral_m)
+
+
 def _unit_z_like(v: Tensor) -> Tensor:
     up = torch.zeros_like(v)
     up[..., 2] = 1.0
     return up
 
 
-def _slerp_unit(a: Tensor, b: Tensor, fraction: float) -> Tensor:
+def _slerp_unit(a: Tensor, b: Tensor, fraction: float | Tensor) -> Tensor:
     """Move unit vector(s) a towards b along the great circle by ``fraction`` of the angle."""
     cos_angle = (a * b).sum(dim=-1, keepdim=True).clamp(-1.0, 1.0)
     angle = torch.acos(cos_angle)
     sin_angle = torch.sin(angle)
     small = sin_angle < 1e-6
     safe_sin = torch.where(small, torch.ones_like(sin_angle), sin_angle)
-    wa = torch.where(small, torch.full_like(angle, 1.0 - fraction), torch.sin((1.0 - fraction) * angle) / safe_sin)
-    wb = torch.where(small, torch.full_like(angle, fraction), torch.sin(fraction * angle) / safe_sin)
+    if isinstance(fraction, Tensor):  # per env [B, 1]
+        wa = torch.where(small, (1.0 - fraction).expand_as(angle), torch.sin((1.0 - fraction) * angle) / safe_sin)
+        wb = torch.where(small, fraction.expand_as(angle), torch.sin(fraction * angle) / safe_sin)
+    else:
+        wa = torch.where(small, torch.full_like(angle, 1.0 - fraction), torch.sin((1.0 - fraction) * angle) / safe_sin)
+        wb = torch.where(small, torch.full_like(angle, fraction), torch.sin(fraction * angle) / safe_sin)
     out = wa * a + wb * b
     return out / torch.linalg.vector_norm(out, dim=-1, keepdim=True)
 
@@ -338,3 +415,56 @@ PX4_SIH_V1_16 = DynamicsParams(
     command_delay_z_s=0.099,
     command_delay_yaw_s=0.124,
 )
+
+
+# The parameters QuadrotorDynamics.step takes per env (``per_env``), and the command delays
+# (applied outside the dynamics, by CommandDelay or the batched env's delay line).
+PER_ENV_PARAMS = ("velocity_gain_1_s", "vertical_velocity_gain_1_s", "velocity_integral_gain_1_s2", "linear_drag_kg_s",
+                  "max_accel_horizontal_m_s2", "attitude_tau_s", "yaw_rate_tau_s", "yaw_rate_gain",
+                  "max_yaw_accel_rad_s2")  # fmt: skip
+COMMAND_DELAY_PARAMS = ("command_delay_xy_s", "command_delay_z_s", "command_delay_yaw_s")
+
+
+@dataclass(frozen=True)
+class DynamicsRandomization:
+    """Per-episode spread of a vehicle around its identified parameters (training's domain
+    randomization): each value is drawn uniformly in nominal x [1 - r, 1 + r] with r the
+    relative half-range of its group.  The ranges are assumptions, not measurements: one PX4
+    flight was fitted (``PX4_SIH_V1_16``), so how much a real airframe's response differs from
+    it (battery, mass, props, wind) is not known here; +-20 % on gains and limits and +-30 % on
+    lags and delays cover the spread one expects between a SIH fit and real vehicles."""
+
+    gain_fraction: float = 0.2  # velocity gains, integral gain, drag, yaw-rate gain, acceleration limits
+    lag_fraction: float = 0.3  # attitude and yaw-rate time constants
+    delay_fraction: float = 0.3  # command_delay_*_s
+
+    def validate(self) -> None:
+        for key in ("gain_fraction", "lag_fraction", "delay_fraction"):
+            if not 0.0 <= getattr(self, key) < 1.0:
+                raise ValueError(f"DynamicsRandomization.{key}={getattr(self, key)} must be in [0, 1): a relative half-range")
+
+    def fraction(self, name: str) -> float:
+        if name in COMMAND_DELAY_PARAMS:
+            return self.delay_fraction
+        if name in ("attitude_tau_s", "yaw_rate_tau_s"):
+            return self.lag_fraction
+        return self.gain_fraction
+
+
+def sample_dynamics(params: DynamicsParams, randomization: DynamicsRandomization, batch_size: int,
+                    generator: torch.Generator) -> dict[str, Tensor]:  # fmt: skip
+    """{name: [batch_size] float32} per-env values of :data:`PER_ENV_PARAMS` and
+    :data:`COMMAND_DELAY_PARAMS` drawn around ``params`` (see :class:`DynamicsRandomization`),
+    in a fixed order from ``generator`` (CPU).  A parameter at infinity (no limit) stays there;
+    a command delay stays within DynamicsParams' [0, 1] s."""
+    randomization.validate()
+    names = PER_ENV_PARAMS + COMMAND_DELAY_PARAMS
+    u = torch.rand((len(names), batch_size), generator=generator, dtype=torch.float32) * 2.0 - 1.0
+    out = {}
+    for row, name in zip(u, names):
+        nominal = getattr(params, name)
+        if name == "vertical_velocity_gain_1_s" and nominal is None:
+            nominal = params.velocity_gain_1_s
+        value = nominal * (1.0 + randomization.fraction(name) * row) if math.isfinite(nominal) else torch.full_like(row, nominal)
+        out[name] = value.clamp(0.0, 1.0) if name in COMMAND_DELAY_PARAMS else value
+    return out

@@ -12,10 +12,12 @@ all come out of the matching; nothing is masked by hand.
 - :mod:`.projector`: the dot pattern and the light it throws (numba);
 - :mod:`.ir`: the IR pair;
 - :mod:`.matching`: SGBM, the subpixel fit, disparity to depth;
-- :mod:`.stereo`: :class:`StereoDepthSensor`, the batched entry point, and :func:`decimate_depth`.
+- :mod:`.stereo`: :class:`StereoDepthSensor`, the batched entry point, and :func:`decimate_depth`;
+- :mod:`.gray`: :class:`GrayCamera`, the gray image's auto-exposure, gain, motion blur and noise.
 """
 
 from .config import D455, D455_PROJECTOR_OFF, StereoConfig
+from .gray import GrayCamera, GrayCameraConfig, GrayFrame, sample_brightness
 from .ir import IrPair, render_ir_pair
 from .matching import match_depth
 from .stereo import StereoDepthSensor, StereoFrame, decimate_depth
@@ -23,6 +25,9 @@ from .stereo import StereoDepthSensor, StereoFrame, decimate_depth
 __all__ = [
     "D455",
     "D455_PROJECTOR_OFF",
+    "GrayCamera",
+    "GrayCameraConfig",
+    "GrayFrame",
     "IrPair",
     "StereoConfig",
     "StereoDepthSensor",
@@ -30,4 +35,5 @@ __all__ = [
     "decimate_depth",
     "match_depth",
     "render_ir_pair",
+    "sample_brightness",
 ]

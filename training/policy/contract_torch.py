@@ -15,6 +15,7 @@ from runtime.contract.constants import (
     MAX_YAW_RATE_RAD_S,
     STATE_DIM,
 )
+from runtime.contract.action import ActionLimits
 from sim.rotations import euler_from_quat, quat_rotate_inverse, rotate_about_z
 
 
@@ -47,10 +48,15 @@ def observation_state_batch(
     return state
 
 
-def action_to_velocity_flu_batch(action: Tensor) -> Tensor:
-    """Raw actions [B, 3] -> body FLU commands [B, 4] (vx, vy, vz m/s; yaw rate rad/s) with the
-    contract's full limits, clipping the action to [-1, 1] first."""
+def action_to_velocity_flu_batch(action: Tensor, limits: ActionLimits | None = None) -> Tensor:
+    """Raw actions [B, 3] -> body FLU commands [B, 4] (vx, vy, vz m/s; yaw rate rad/s), clipping
+    the action to [-1, 1] first; ``limits``: a deployment's caps on speed and inclination, applied
+    as the runtime applies them (``runtime.contract.action_to_velocity_flu``), None = the
+    contract's full range."""
     a = action.clamp(-1.0, 1.0)
     speed = (a[:, 0] + 1.0) * (MAX_SPEED_M_S / 2.0)
     incl = a[:, 1] * MAX_INCLINATION_RAD
+    if limits is not None:
+        speed = speed.clamp_max(limits.max_speed_m_s)
+        incl = incl.clamp(-limits.max_inclination_rad, limits.max_inclination_rad)
     return torch.stack([speed * torch.cos(incl), torch.zeros_like(speed), speed * torch.sin(incl), a[:, 2] * MAX_YAW_RATE_RAD_S], dim=-1)

@@ -39,6 +39,7 @@ from ..distributed import DistInfo, log_weights_digest, wall_budget_spent
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .env import CRASH, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder
+from .field import field_env_overrides
 from .network import CHECKPOINT_KIND, STUDENT, TEACHER, ActorCritic, PolicyConfig, load_policy
 from .train import init_from_policy
 
@@ -67,6 +68,10 @@ class DaggerConfig:
     corruption: str = "train"
     corrupted_env_fraction: float = 0.5
     projector_off_episode_fraction: float = 0.15
+    # Train in the field (training.policy.field, Table II's ``field``): the student sees the
+    # simulated D455's stereo depth (in place of ``corruption``) and the gray camera, latency,
+    # PX4's randomized response, EKF2-like estimates and the field config's speed caps act.
+    field_conditions: bool = False
     min_level: int = 0
     max_level: int = 20
     # Extra weight of the steps whose teacher sees a surface nearer than near_m (m) in the
@@ -87,10 +92,11 @@ class DaggerConfig:
 
     def env_config(self) -> NavEnvConfig:
         curriculum = CurriculumConfig(start_level=self.min_level, min_level=self.min_level, max_level=self.max_level)
+        field_options = {"corruption": "stereo", **field_env_overrides()} if self.field_conditions else {}
         return replace(NavEnvConfig(num_envs=self.num_envs, corruption=self.corruption, curriculum=curriculum,
                                     corrupted_env_fraction=self.corrupted_env_fraction, level_sampling="uniform",
                                     projector_off_episode_fraction=self.projector_off_episode_fraction),
-                       **self.env_overrides)  # fmt: skip
+                       **(field_options | self.env_overrides))  # fmt: skip
 
     def validate(self) -> None:
         if self.corruption not in ("train", "none"):

@@ -36,14 +36,19 @@ from runtime.contract.constants import (
     OBSERVATION_DIM,
     STATE_DIM,
 )
+from runtime.contract.action import ActionLimits
 from sim.camera import CameraModel, MountJitter, camera_pose, sample_mount_jitter
 from sim.collision import DEFAULT_VEHICLE_RADIUS_M, collides
 from sim.degradation import RL_TRAINING, PatchScheme, ProjectorOffModel, corrupt_depth, patch_masks
-from sim.dynamics import DynamicsParams, QuadrotorDynamics, QuadState
+from sim.delay import DelayLine, delay_steps
+from sim.dynamics import (COMMAND_DELAY_PARAMS, PER_ENV_PARAMS, DynamicsParams, DynamicsRandomization, QuadrotorDynamics,
+                          QuadState, sample_dynamics)  # fmt: skip
+from sim.estimate import StateEstimateConfig, StateEstimator
 from sim.preprocess_torch import preprocess_depth_batch, preprocess_gray_batch
 from sim.render import RenderOutput, render
 from sim.sensor import D455, StereoConfig, StereoDepthSensor
-from sim.rotations import quat_from_euler, quat_multiply, rotate_about_z
+from sim.sensor.gray import GrayCamera, GrayCameraConfig, GrayFrame, sample_brightness
+from sim.rotations import quat_from_euler, quat_multiply, quat_rotate, quat_rotate_inverse, rotate_about_z
 from sim.world import WorldBatch, WorldConfig, env_seed, make_worlds
 
 from ..fastpath import frozen_encoder
@@ -141,9 +146,21 @@ class NavEnvConfig:
     privileged_render_px: tuple[int, int] = (64, 36)  # width, height (the D455's 16:9)
     privileged_pool: int = 2
     world: WorldConfig = WorldConfig()
+    # The vehicle's response; its command_delay_*_s (the autopilot's, e.g. PX4_SIH_V1_16's) hold
+    # the commands back per axis at the physics rate, as sim.dynamics.CommandDelay does.
     dynamics: DynamicsParams = DynamicsParams(ground_contact=False)
     reward: RewardConfig = RewardConfig()
     curriculum: CurriculumConfig = CurriculumConfig()
+    # The field (training.policy.field; all off by default).  action_limits: a field config's
+    # caps on speed and inclination, applied by the runtime's mapping (None: the contract's).
+    action_limits: ActionLimits | None = None
+    gray_camera: GrayCameraConfig | None = None  # None: the renderer's clean gray
+    # Image-to-command latency (s), drawn per episode uniformly in [low, high]: the command a frame
+    # leads to starts this long after the frame was taken (and holds until the next one's).
+    latency_range_s: tuple[float, float] = (0.0, 0.0)
+    state_estimate: StateEstimateConfig | None = None  # None: the policy sees the true state
+    # Per-episode vehicle parameters (and command delays) drawn around ``dynamics``.
+    dynamics_randomization: DynamicsRandomization | None = None
 
     @property
     def max_steps(self) -> int:
@@ -176,8 +193,21 @@ class NavEnvConfig:
         if self.privileged_pool < 1 or width % self.privileged_pool or height % self.privileged_pool or min(width, height) < 4:
             raise ValueError(f"privileged_render_px={self.privileged_render_px} must be >= 4 px and divisible by "
                              f"privileged_pool={self.privileged_pool}")  # fmt: skip
+        low, high = self.latency_range_s
+        if not 0.0 <= low <= high <= 1.0:
+            raise ValueError(f"latency_range_s={self.latency_range_s} must satisfy 0 <= low <= high <= 1 s")
+        if self.episode_duration_s <= 0.0:
+            raise ValueError(f"episode_duration_s={self.episode_duration_s} must be > 0")
+        self.dynamics.validate()
+        for part in (self.gray_camera, self.state_estimate, self.dynamics_randomization):
+            if part is not None:
+                part.validate()
         self.curriculum.validate()
         self.world.validate()
+
+    @property
+    def physics_dt_s(self) -> float:
+        return CONTROL_PERIOD_S / self.physics_substeps
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -316,9 +346,10 @@ class NavEnv:
         if config.corruption in STEREO_MODES:
             self.stereo_sensor = StereoDepthSensor(replace(config.stereo, projector_on=STEREO_MODES[config.corruption]))
         self.generator = torch.Generator().manual_seed(seed)
-        self.stage_seconds = {"render": 0.0, "stereo": 0.0, "preprocess": 0.0, "encode": 0.0, "physics": 0.0,
+        self.stage_seconds = {"render": 0.0, "stereo": 0.0, "gray": 0.0, "preprocess": 0.0, "encode": 0.0, "physics": 0.0,
                               "privileged": 0.0}  # fmt: skip
         n = self.num_envs
+        self._init_field(config)
         self._slots = max(1, config.curriculum.max_level if fixed_level is None else fixed_level)
         self.episode_index = torch.zeros(n, dtype=torch.long)
         self.world: WorldBatch | None = None
@@ -332,6 +363,33 @@ class NavEnv:
         self.projector_off_episode = torch.zeros(n, dtype=torch.bool)
         self.active = torch.ones(n, dtype=torch.bool, device=self.device)
         self.last_render: RenderOutput | None = None
+        self.last_gray: GrayFrame | None = None
+
+    def _init_field(self, config: NavEnvConfig) -> None:
+        """The field's parts (NavEnvConfig's field options): each exists only when configured, so
+        an env without them draws nothing more from its generator than before they existed."""
+        n, dt_s, dev = self.num_envs, config.physics_dt_s, self.device
+        self.gray_camera = None if config.gray_camera is None else GrayCamera(config.gray_camera, self.camera)
+        self.brightness = torch.ones(n)
+        self.estimator = None
+        if config.state_estimate is not None:
+            self.estimator = StateEstimator(config.state_estimate, n, dt_s, dev)
+        # Image-to-command latency: the policy's body-frame command, per env.
+        self.latency_s = torch.zeros(n)
+        self.latency_steps = torch.zeros(n, dtype=torch.long)
+        self._latency_line = None
+        if config.latency_range_s[1] > 0.0:
+            self._latency_line = DelayLine(DelayLine.capacity_for(config.latency_range_s[1], dt_s), n, 4, dev)
+        # The vehicle: per-env parameters and the autopilot's command delays (xy, xy, z, yaw).
+        randomization = config.dynamics_randomization
+        self.dynamics_per_env: dict[str, Tensor] = {}
+        nominal_delays_s = torch.tensor([getattr(config.dynamics, k) for k in COMMAND_DELAY_PARAMS])
+        most_s = float(nominal_delays_s.max()) * (1.0 + (randomization.delay_fraction if randomization else 0.0))
+        self.command_delay_s = nominal_delays_s.repeat(n, 1)  # [N, 3] xy, z, yaw
+        self.command_delay_steps = delay_steps(self.command_delay_s, dt_s)[:, [0, 0, 1, 2]]
+        self._command_line = None
+        if most_s > 0.0:
+            self._command_line = DelayLine(DelayLine.capacity_for(most_s, dt_s), n, 4, dev)
 
     # ---- episodes -------------------------------------------------------------------------
     @property
@@ -378,7 +436,11 @@ class NavEnv:
             for f in fields(WorldBatch):
                 getattr(self.world, f.name)[dev_envs] = getattr(fresh, f.name)
             for f in fields(QuadState):
-                getattr(self.state, f.name)[dev_envs] = getattr(fresh_state, f.name)
+                current, value = getattr(self.state, f.name), getattr(fresh_state, f.name)
+                if current is None:
+                    continue
+                # A new episode's controller integral (None at rest) starts at zero.
+                current[dev_envs] = 0.0 if value is None else value
             self.jitter.offset_body_flu_m[dev_envs] = fresh_jitter.offset_body_flu_m
             self.jitter.quat_body_cam[dev_envs] = fresh_jitter.quat_body_cam
         self.step_count[dev_envs] = 0
@@ -390,6 +452,31 @@ class NavEnv:
         if cfg.corruption == "episode":
             coverage = cfg.corruption_scheme.sample_coverage(len(envs), self.generator)
             self.episode_masks[envs] = patch_masks(coverage, cfg.corruption_scheme, self.generator)
+        self._reset_field(envs, fresh_state)
+
+    def _reset_field(self, envs: Tensor, fresh_state: QuadState) -> None:
+        """Draw the new episodes' field parameters (only those configured) and clear their delay
+        lines: before its first command an env hovers (the runtime's hover setpoint before
+        offboard starts), and its estimate starts at the true start state."""
+        cfg, k, dev_envs = self.config, len(envs), envs.to(self.device)
+        if cfg.dynamics_randomization is not None:
+            drawn = sample_dynamics(cfg.dynamics, cfg.dynamics_randomization, k, self.generator)
+            for name in PER_ENV_PARAMS:
+                self.dynamics_per_env.setdefault(name, torch.zeros(self.num_envs, device=self.device))[dev_envs] = drawn[name].to(self.device)
+            self.command_delay_s[envs] = torch.stack([drawn[name] for name in COMMAND_DELAY_PARAMS], dim=-1)
+            self.command_delay_steps[envs] = delay_steps(self.command_delay_s[envs], cfg.physics_dt_s)[:, [0, 0, 1, 2]]
+        if self._latency_line is not None:
+            low, high = cfg.latency_range_s
+            self.latency_s[envs] = low + (high - low) * torch.rand(k, generator=self.generator)
+            self.latency_steps[envs] = delay_steps(self.latency_s[envs], cfg.physics_dt_s)
+        hover = torch.zeros(k, 4, device=self.device)
+        for line in (self._latency_line, self._command_line):
+            if line is not None:
+                line.fill(dev_envs, hover)
+        if self.estimator is not None:
+            self.estimator.reset(envs, fresh_state, self.generator)
+        if self.gray_camera is not None:
+            self.brightness[envs] = sample_brightness(cfg.gray_camera, k, self.generator)
 
     # ---- observation ------------------------------------------------------------------------
     def _timed(self, stage: str, t0: float) -> float:
@@ -420,7 +507,13 @@ class NavEnv:
             off = self.projector_off_episode.nonzero().squeeze(1).to(self.device)
             depth_m = depth_m.clone()
             depth_m[off], _ = self.projector_off.apply(depth_m[off], out.gray_u8[off], self.camera.fx_px, self.generator)
-        gray = preprocess_gray_batch(out.gray_u8)
+        gray_u8 = out.gray_u8
+        if self.gray_camera is not None:
+            vel_cam, angvel_cam = self._camera_motion(cam_quat)
+            self.last_gray = self.gray_camera.capture(out.gray_u8, out.depth_m, self.brightness, vel_cam, angvel_cam, self.generator)
+            gray_u8 = self.last_gray.gray_u8
+            t0 = self._timed("gray", t0)
+        gray = preprocess_gray_batch(gray_u8)
         depth = preprocess_depth_batch(depth_m)
         if cfg.corruption == "train":
             chosen = ((torch.rand(self.num_envs, generator=self.generator) < cfg.corrupted_env_fraction)
@@ -433,6 +526,13 @@ class NavEnv:
             depth = corrupt_depth(depth, self.episode_masks)
         self._timed("preprocess", t0)
         return gray.unsqueeze(1), depth.unsqueeze(1)
+
+    def _camera_motion(self, cam_quat_enu_cam: Tensor) -> tuple[Tensor, Tensor]:
+        """([N, 3] linear velocity m/s, [N, 3] angular velocity rad/s) of the camera in its frame C
+        now (the true motion: it is what blurs the image)."""
+        s = self.state
+        angvel_enu = quat_rotate(s.quat_enu_flu, s.angvel_body_flu_rad_s)
+        return quat_rotate_inverse(cam_quat_enu_cam, s.vel_enu_m_s), quat_rotate_inverse(cam_quat_enu_cam, angvel_enu)
 
     def privileged_depth(self) -> Tensor:
         """[N, W*H] the teacher's clean depth at the current camera poses (see NavEnvConfig),
@@ -447,8 +547,10 @@ class NavEnv:
         self._timed("privileged", t0)
         return (nearest * (1.0 / DEPTH_MAX_M)).clamp(0.0, 1.0)
 
-    def _state_observation(self) -> Tensor:
-        s = self.state
+    def _state_observation(self, estimated: bool = False) -> Tensor:
+        """[N, 15] the contract's state values of the true state, or (``estimated``, with a state
+        estimate configured) of the autopilot's estimate of it, as the runtime receives it."""
+        s = self.state if not estimated or self.estimator is None else self.estimator.estimate(self.generator)
         return observation_state_batch(
             s.pos_enu_m, self.world.goal_m, s.quat_enu_flu, s.vel_enu_m_s, s.angvel_body_flu_rad_s, self.prev_action
         )
@@ -466,7 +568,7 @@ class NavEnv:
             latent = self.encoder(gray, depth).float()
         self._timed("encode", t0)
         assert latent.shape == (self.num_envs, LATENT_DIM)
-        obs = torch.cat([self._state_observation(), latent.clone()], dim=-1)
+        obs = torch.cat([self._state_observation(estimated=True), latent.clone()], dim=-1)
         assert obs.shape[-1] == OBSERVATION_DIM
         return obs
 
@@ -476,7 +578,7 @@ class NavEnv:
         cfg = self.config
         t0 = time.perf_counter()
         action = action.detach().to(self.device).float().clamp(-1.0, 1.0)
-        cmd_flu = action_to_velocity_flu_batch(action)
+        cmd_flu = action_to_velocity_flu_batch(action, cfg.action_limits)
         kick_force, kick_rotation = self._sample_kicks()
         crashed = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
         dt_s = CONTROL_PERIOD_S / cfg.physics_substeps
@@ -484,13 +586,23 @@ class NavEnv:
         if kick_rotation is not None:
             state = replace(state, quat_enu_flu=quat_multiply(state.quat_enu_flu, kick_rotation))
         for _ in range(cfg.physics_substeps):
+            arriving_flu = cmd_flu
+            if self._latency_line is not None:  # the command of an older frame may still be the newest sent
+                self._latency_line.push(cmd_flu)
+                arriving_flu = self._latency_line.read(self.latency_steps)
             # PX4 resolves a body velocity setpoint by the current heading (yaw only).
-            vel_cmd_enu = rotate_about_z(cmd_flu[:, :3], state.yaw_enu_rad())
-            new = self.dynamics.step(state, vel_cmd_enu, cmd_flu[:, 3], dt_s, kick_force)
+            vel_cmd_enu, yaw_rate_cmd = rotate_about_z(arriving_flu[:, :3], state.yaw_enu_rad()), arriving_flu[:, 3]
+            if self._command_line is not None:  # the autopilot's own delay, per axis
+                self._command_line.push(torch.cat([vel_cmd_enu, yaw_rate_cmd.unsqueeze(-1)], dim=-1))
+                acting = self._command_line.read(self.command_delay_steps)
+                vel_cmd_enu, yaw_rate_cmd = acting[:, :3], acting[:, 3]
+            new = self.dynamics.step(state, vel_cmd_enu, yaw_rate_cmd, dt_s, kick_force, self.dynamics_per_env)
             # Crashed (and ended) envs stay where they are.
             frozen = (crashed | ~self.active).unsqueeze(-1)
             state = QuadState(*(_keep_frozen(frozen, getattr(state, f.name), getattr(new, f.name)) for f in fields(QuadState)))
             crashed |= collides(self.world, state.pos_enu_m, cfg.vehicle_radius_m) & self.active
+            if self.estimator is not None:
+                self.estimator.record(state)
         self.state = state
         self.step_count += self.active.long()
         t0 = self._timed("physics", t0)

@@ -8,7 +8,10 @@ on every frame: depth lost on low-texture, dark, oblique or far surfaces), ``ste
 ``stereo-projector-off`` (the simulated D455 of ``sim.sensor``: depth matched from rendered IR
 images, its projector on / off), and the out-of-distribution patches, fixed for the episode:
 ``patches-1-50px`` (Table I's 1-50 px squares to 50 %) and ``patches-100px`` (S2's 100 px
-squares, to 50 %).
+squares, to 50 %); ``field``: stereo depth (projector on) and everything else the field does,
+together (``training.policy.field``: gray-camera exposure, gain, blur and noise, image-to-command
+latency, PX4's randomized response and command delays, EKF2-like state estimates, the shipped field
+config's speed caps with the episode lengthened to match).
 
 Rooms: ``validation`` (seed 0) for choosing models, ``test`` (seed 1) for the tables we publish;
 table2.json names which, with the fingerprints of the policy and the encoder measured and the
@@ -36,6 +39,7 @@ from ..progress import Progress
 from ..stats import wilson_interval
 from .env import (CRASH, OUTCOMES, STEREO_MODES, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder,
                   parity_frames)  # fmt: skip
+from .field import field_description, field_env_overrides
 from .network import TEACHER, check_trained_on, load_policy
 
 log = logging.getLogger(__name__)
@@ -48,7 +52,10 @@ CONDITIONS: dict[str, dict] = {
     "stereo-projector-off": {"corruption": "stereo-projector-off"},
     "patches-1-50px": {"corruption": "episode", "corruption_scheme": evaluation_scheme(0.5)},
     "patches-100px": {"corruption": "episode", "corruption_scheme": evaluation_scheme(0.5, (100, 100))},
+    "field": {"corruption": "stereo"},  # and the rest of the field: condition_env_overrides
 }
+# The conditions that fly in the field (training.policy.field) besides their depth.
+FIELD_CONDITIONS = ("field",)
 # Room sets: models are chosen on validation rooms; published tables use test rooms no choice saw.
 ROOMS = {"validation": 0, "test": 1}
 
@@ -67,6 +74,9 @@ class PolicyEvalConfig:
     out_dir: str | None = None  # plots and table2.json (default POLICY/eval)
     plots_per_cell: int = 2
     precision: str = "auto"  # the frozen encoder's fast path (training.fastpath)
+    # Smoke runs only: end every episode after this many seconds (its condition's length
+    # otherwise); table2.json records it, a published table leaves it None.
+    episode_duration_s: float | None = None
 
     @property
     def room_seed(self) -> int:
@@ -89,29 +99,41 @@ class PolicyEvalConfig:
             raise ValueError(f"rooms={self.rooms!r} is seed {ROOMS[self.rooms]}, but seed={self.seed} was given: give one of them")
         if self.episodes < 1 or self.batch_envs < 1:
             raise ValueError("episodes and batch_envs must be >= 1")
+        if self.episode_duration_s is not None and self.episode_duration_s <= 0.0:
+            raise ValueError(f"episode_duration_s={self.episode_duration_s} must be > 0 (or None: the condition's own)")
         if not self.levels or min(self.levels) < 0:
             raise ValueError(f"levels={self.levels} must be non-negative obstacle counts")
 
 
+def condition_env_overrides(condition: str) -> dict:
+    """The NavEnvConfig fields ``condition`` sets (the field's read from the shipped field config)."""
+    overrides = dict(CONDITIONS[condition])
+    if condition in FIELD_CONDITIONS:
+        overrides |= field_env_overrides()
+    return overrides
+
+
 def table2_env(encoder, level: int, condition: str, num_envs: int, device, seed: int, first_episode: int = 0,
-               teacher_obs: bool = False) -> NavEnv:  # fmt: skip
+               teacher_obs: bool = False, episode_duration_s: float | None = None) -> NavEnv:  # fmt: skip
     """The env of Table II's episodes ``first_episode`` .. ``first_episode + num_envs - 1`` at
     ``level`` under ``condition``: no kicks, no reset after an episode ends.  Its rooms depend on
     (seed, level, episode number), not on the condition or policy."""
-    config = NavEnvConfig(num_envs=num_envs, kick_probability=0.0, **CONDITIONS[condition],
+    overrides = condition_env_overrides(condition) | ({} if episode_duration_s is None else {"episode_duration_s": episode_duration_s})
+    config = NavEnvConfig(num_envs=num_envs, kick_probability=0.0, **overrides,
                           curriculum=CurriculumConfig(start_level=level, min_level=level, max_level=level))  # fmt: skip
     return NavEnv(config, encoder, device, seed=seed * 100_003 + level * 1009 + first_episode, fixed_level=level,
                   auto_reset=False, teacher_obs=teacher_obs)  # fmt: skip
 
 
 @torch.no_grad()
-def fly_episodes(policy, encoder, level: int, condition: str, episodes: int, batch_envs: int, device, seed: int):
+def fly_episodes(policy, encoder, level: int, condition: str, episodes: int, batch_envs: int, device, seed: int,
+                 episode_duration_s: float | None = None):  # fmt: skip
     """Fly ``episodes`` episodes at ``level`` under ``condition``; yields per episode
     (outcome code, trajectory [T, 3], world description)."""
     done_count = 0
     while done_count < episodes:
         n = min(batch_envs, episodes - done_count)
-        env = table2_env(encoder, level, condition, n, device, seed, first_episode=done_count)
+        env = table2_env(encoder, level, condition, n, device, seed, first_episode=done_count, episode_duration_s=episode_duration_s)
         obs = env.reset()
         worlds = [env.world.describe(i) for i in range(n)]
         hidden = policy.initial_hidden(n, device)
@@ -174,7 +196,8 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
         for level in config.levels:
             counts = {SUCCESS: 0, TIMEOUT: 0, CRASH: 0}
             for k, (code, path, world) in enumerate(
-                fly_episodes(policy, encoder, level, condition, config.episodes, config.batch_envs, device, config.room_seed)
+                fly_episodes(policy, encoder, level, condition, config.episodes, config.batch_envs, device, config.room_seed,
+                             config.episode_duration_s)
             ):
                 counts[code] += 1
                 if k < config.plots_per_cell:
@@ -200,6 +223,7 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
         "fast_path": {"encoder": getattr(getattr(encoder, "path", None), "name", "fp32"), "bf16_action_error": action_parity,
                       "precision_requested": config.precision},
         "stereo_sensor": stereo,
+        "field": {c: field_description(condition_env_overrides(c)) for c in conditions if c in FIELD_CONDITIONS},
         "policy_env_steps": card.get("step"), "config": asdict(replace(config, out_dir=str(out))), "cells": cells,
     }  # fmt: skip
     (out / "table2.json").write_text(json.dumps(result, indent=2))

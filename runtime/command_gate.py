@@ -57,11 +57,15 @@ class CommandGate:
 
     async def hover(self) -> bool:
         """Close the gate to the policy and send a zero-velocity setpoint; False if released."""
+        return await self.brake(HOVER)
+
+    async def brake(self, setpoint: VelocityBodyYawspeed) -> bool:
+        """Close the gate to the policy and send the brake's ``setpoint``; False if released."""
         self._policy_open = False
         async with self._lock:
             if self._released:
                 return False
-            await self._vehicle.set_velocity_body(HOVER)
+            await self._vehicle.set_velocity_body(setpoint)
             return True
 
     async def hold(self) -> bool:

@@ -52,6 +52,8 @@ _WATCHDOG_RANGES = {
     "hold_grace_s": (0.0, 5.0, "s", "the hover before Hold ends"),
     "brake_speed_m_s": (0.05, 1.0, "m/s", "a vehicle that is still moving is not stopped"),
     "brake_timeout_s": (0.0, 8.0, "s", "inside systemd's 15 s stop timeout"),
+    "brake_gain": (0.0, 2.0, "", "0 = a zero-velocity setpoint; above 2 the delay makes it reverse"),
+    "brake_setpoint_max_m_s": (0.1, MAX_SPEED_M_S, "m/s", "no faster than the policy may fly"),
     "offboard_loss_s": (0.1, 60.0, "s", "PX4's COM_OF_LOSS_T range"),
     "geofence_radius_m": (0.0, 200.0, "m", "a fence the vehicle can reach"),
     "altitude_max_m": (0.0, 120.0, "m", "a band below the usual 120 m ceiling"),
@@ -83,13 +85,18 @@ class WatchdogConfig:
     altitude_min_m: float = 0.2  # band above home
     altitude_max_m: float = 8.0
     # Every end of an episode (goal, time limit, trip, stop signal) brakes before leaving offboard:
-    # a zero-velocity setpoint for at least hold_grace_s and until the measured speed is below
-    # brake_speed_m_s (or brake_timeout_s has passed), then offboard.stop() (PX4 Hold).  PX4 left
-    # moving keeps going: Hold entered at 0.3-0.6 m/s, then Land, drifted ~0.8 m into the wall
-    # behind the goal (MAVLINK-NOTES.md).  The timeout covers telemetry that no longer comes.
+    # for at least hold_grace_s and until the measured speed is below brake_speed_m_s (or
+    # brake_timeout_s has passed), then offboard.stop() (PX4 Hold).  The brake's setpoint opposes
+    # the measured velocity, -brake_gain x v (at most brake_setpoint_max_m_s), while that velocity
+    # is fresh, and is zero otherwise (or with brake_gain = 0).  PX4 does not stop on a zero
+    # setpoint alone: its velocity integral keeps pushing, and in the PX4 campaign the vehicle
+    # stopped 1.9 m past where it braked, into the wall behind the goal; against its identified
+    # response (sim.dynamics.PX4_SIH_V1_16) gain 1 stops it in 1.3 m, with no reversal.
     hold_grace_s: float = 1.0
     brake_speed_m_s: float = 0.2
     brake_timeout_s: float = 4.0
+    brake_gain: float = 1.0
+    brake_setpoint_max_m_s: float = 1.5
     # PX4's COM_OF_LOSS_T: with the link down this long, the autopilot's offboard-loss failsafe
     # takes the vehicle out of offboard; a mode change after such a gap is that failsafe
     # (offboard_loss_failsafe), not a pilot.  Set it to the autopilot's COM_OF_LOSS_T.

@@ -52,7 +52,7 @@ from .policy_step import PolicyMemory, StepResult, compute_step
 from .slots import LatestSlot
 from .state import VehicleError, VehicleState
 from .timing import StageTimes
-from .watchdog import TripCause, WatchInputs, Watchdog, brake_ended, brake_record
+from .watchdog import TripCause, WatchInputs, Watchdog, brake_ended, brake_record, brake_setpoint
 
 log = logging.getLogger(__name__)
 
@@ -171,16 +171,20 @@ class FlightLoop:
             log.error("safe stop failed (%s): MAVSDK stops re-sending on close, PX4's offboard-loss failsafe follows", err)
 
     async def brake_then_hold(self) -> dict | None:
-        """Zero-velocity setpoint until the vehicle has stopped (``runtime.watchdog.brake_ended``),
-        then Hold; returns the brake's record (None if the pilot has the vehicle: nothing sent).
+        """Brake (``runtime.watchdog.brake_setpoint`` at the control rate) until the vehicle has
+        stopped (``runtime.watchdog.brake_ended``), then Hold; returns the brake's record (None if the pilot has the vehicle: nothing sent).
         Raises VehicleError if a command fails."""
         t_brake_ns = time.monotonic_ns()
         if not await self.gate.hover():
             return None
         self._log_hover("brake")
-        while (ended := brake_ended(self.vehicle.state(), t_brake_ns, time.monotonic_ns(), self.config.watchdog)) is None:
+        t_sent_ns = t_brake_ns
+        while (ended := brake_ended(self.vehicle.state(), t_brake_ns, now_ns := time.monotonic_ns(), self.config.watchdog)) is None:
             if self.gate.released:  # the pilot took over while it braked: the vehicle is theirs
                 return None
+            if now_ns - t_sent_ns >= CONTROL_PERIOD_S * _NS_PER_S:
+                t_sent_ns = now_ns
+                await self.gate.brake(brake_setpoint(self.vehicle.state(), now_ns, self.config.watchdog))
             await self._sleep_alive(self.config.watchdog.period_s)
         now_ns = time.monotonic_ns()
         record = brake_record(ended, t_brake_ns, now_ns, self.vehicle.state())

@@ -12,8 +12,9 @@ not following its velocity commands (``tracking``: error above a bound for longe
 supervision, a refused start (offboard refused by the autopilot) is recorded with
 :meth:`Watchdog.refuse_start`.
 
-Response to a trip: a zero-velocity (hover) setpoint at once, then ``offboard.stop()`` (PX4
-Hold) once the vehicle has braked (:func:`brake_ended`: at least ``hold_grace_s``, then the
+Response to a trip: a zero-velocity (hover) setpoint at once, then the brake's setpoint at the
+control rate (:func:`brake_setpoint`: against the measured velocity), then ``offboard.stop()``
+(PX4 Hold) once the vehicle has braked (:func:`brake_ended`: at least ``hold_grace_s``, then the
 measured speed below ``brake_speed_m_s``, or ``brake_timeout_s`` at the latest).  Pilot left offboard: the runtime stops commanding at once and
 sends nothing more (no Hold either: the pilot has the vehicle).  Every trip is logged and
 recorded as ``{cause, detail, t_s, detect_ms, response, hold_t_s}`` (and sent to ``on_event``
@@ -39,6 +40,7 @@ from typing import Callable
 import numpy as np
 
 from .command_gate import CommandGate
+from .contract import HOVER, CONTROL_PERIOD_S, VelocityBodyYawspeed, velocity_flu_to_mavsdk
 from .config import WatchdogConfig
 from .tracking import OverBound, TrackingMonitor, TrackingStatus, tilt_rad
 from .state import MODE_OFFBOARD, VehicleError, VehicleState
@@ -131,6 +133,23 @@ def brake_ended(vehicle: VehicleState, t_brake_ns: int, now_ns: int, config: Wat
     return None
 
 
+def brake_setpoint(vehicle: VehicleState, now_ns: int, config: WatchdogConfig) -> VelocityBodyYawspeed:
+    """The brake's setpoint: ``-brake_gain`` x the measured velocity in the body frame (its norm at
+    most ``brake_setpoint_max_m_s``, no yaw rate), so the autopilot's controller is asked to
+    decelerate as hard as its limits allow instead of being left to its own integrator; a
+    zero-velocity setpoint when the velocity is stale (older than ``telemetry_stale_ms``) or
+    unknown, or with ``brake_gain`` 0."""
+    fresh = vehicle.t_posvel_ns > 0 and now_ns - vehicle.t_posvel_ns <= config.telemetry_stale_ms * _NS_PER_MS
+    vel_body = vehicle.vel_body_flu_m_s
+    if config.brake_gain == 0.0 or not fresh or not np.all(np.isfinite(vel_body)):
+        return HOVER
+    setpoint = -config.brake_gain * vel_body
+    norm = float(np.linalg.norm(setpoint))
+    if norm > config.brake_setpoint_max_m_s:
+        setpoint = setpoint * (config.brake_setpoint_max_m_s / norm)
+    return velocity_flu_to_mavsdk(np.array([setpoint[0], setpoint[1], setpoint[2], 0.0]))
+
+
 def measured_speed_m_s(vehicle: VehicleState) -> float:
     """|velocity| (m/s, world ENU) as telemetry last reported it; NaN before any."""
     return float(np.linalg.norm(vehicle.vel_enu_m_s))
@@ -163,6 +182,7 @@ class Watchdog:
         self._home_z_enu_m = 0.0
         self._depth_invalid = OverBound()
         self._hold_pending = False
+        self._t_brake_sent_ns = 0
         self.brake: dict | None = None  # how the trip response's brake ended (brake_record)
         self._tracking = TrackingMonitor(config.tracking_error_max_m_s, config.tracking_lag_s, config.tracking_window_s)
         self._tracking_status: TrackingStatus | None = None
@@ -350,6 +370,8 @@ class Watchdog:
             ended = brake_ended(v, tripped.t_ns, now, cfg)
             if ended is not None:
                 await self._send_hold(tripped, now, brake_record(ended, tripped.t_ns, now, v))
+            elif now - self._t_brake_sent_ns >= CONTROL_PERIOD_S * _NS_PER_S:
+                await self._send_brake(v, now)
         return trip
 
     async def _check_faults(self, inputs: WatchInputs) -> Trip | None:
@@ -467,12 +489,22 @@ class Watchdog:
             self._hold_pending = False
         elif response == Response.HOVER_THEN_HOLD:
             self._hold_pending = True
+            self._t_brake_sent_ns = now_ns
             try:
                 await self.gate.hover()
             except VehicleError as err:
                 log.error("watchdog: hover setpoint failed (%s); Hold follows after the grace period", err)
         self._emit("trip", trip)
         return trip
+
+    async def _send_brake(self, v: VehicleState, now_ns: int) -> None:
+        """The brake's next setpoint (at the control rate while Hold waits); a failed send is
+        logged, MAVSDK keeps re-sending the last one."""
+        self._t_brake_sent_ns = now_ns
+        try:
+            await self.gate.brake(brake_setpoint(v, now_ns, self.config))
+        except VehicleError as err:
+            log.error("watchdog: brake setpoint failed (%s); Hold follows when braked or at brake_timeout_s", err)
 
     async def _send_hold(self, trip: Trip, now_ns: int, brake: dict) -> None:
         try:

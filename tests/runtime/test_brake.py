@@ -15,7 +15,8 @@ from runtime.config import RecorderConfig, RuntimeConfig, WatchdogConfig
 from runtime.flight import FlightLoop
 from runtime.model import PolicyModel
 from runtime.state import VehicleState
-from runtime.watchdog import brake_ended
+from runtime.contract import HOVER, mavsdk_to_velocity_flu
+from runtime.watchdog import brake_ended, brake_setpoint
 from tests.runtime.test_flight_loop import START, FakeCamera, KinematicVehicle
 
 BRAKE_TAU_S = 0.8  # slower than PX4's, so a 0.3 s hover alone would end well above 0.2 m/s
@@ -69,8 +70,8 @@ def goal_seeker(tmp_path_factory):
     return path
 
 
-async def _fly(model_path, vehicle, goal, timeout_s=20.0, brake_timeout_s=4.0, camera=None):
-    config = RuntimeConfig(watchdog=WatchdogConfig(hold_grace_s=0.3, brake_timeout_s=brake_timeout_s),
+async def _fly(model_path, vehicle, goal, timeout_s=20.0, brake_timeout_s=4.0, camera=None, brake_gain=1.0):
+    config = RuntimeConfig(watchdog=WatchdogConfig(hold_grace_s=0.3, brake_timeout_s=brake_timeout_s, brake_gain=brake_gain),
                            recorder=RecorderConfig(log_dir=None))  # fmt: skip
     await vehicle.start()
     loop = FlightLoop(config, PolicyModel(model_path), vehicle, camera or FakeCamera(), None)
@@ -84,8 +85,8 @@ async def _fly(model_path, vehicle, goal, timeout_s=20.0, brake_timeout_s=4.0, c
 
 
 def test_success_holds_only_once_the_vehicle_has_stopped(goal_seeker):
-    vehicle = LaggingVehicle()
-    result = asyncio.run(_fly(goal_seeker, vehicle, START + np.array([4.0, 0.0, 0.0])))
+    vehicle = LaggingVehicle()  # a zero-velocity brake: the lag alone sets how long it takes
+    result = asyncio.run(_fly(goal_seeker, vehicle, START + np.array([4.0, 0.0, 0.0]), brake_gain=0.0))
     assert result.outcome == "success", result
     assert vehicle.holds == 1 and vehicle.speed_at_hold < 0.2
     assert result.brake["ended"] == "stopped" and result.brake["speed_at_hold_m_s"] < 0.2
@@ -96,7 +97,7 @@ def test_success_holds_only_once_the_vehicle_has_stopped(goal_seeker):
 def test_a_trip_brakes_the_same_way(goal_seeker):
     vehicle = LaggingVehicle()
     goal = START + np.array([15.0, 0.0, 0.0])  # far: the camera dies while it cruises
-    result = asyncio.run(_fly(goal_seeker, vehicle, goal, camera=FakeCamera(stop_after_s=1.5)))
+    result = asyncio.run(_fly(goal_seeker, vehicle, goal, camera=FakeCamera(stop_after_s=1.5), brake_gain=0.0))
     assert result.outcome == "aborted" and result.abort_reason == "stale_frame", result
     assert vehicle.holds == 1 and vehicle.speed_at_hold < 0.2
     assert result.brake["ended"] == "stopped" and result.watchdog_trips[0]["hold_t_s"] - result.watchdog_trips[0]["t_s"] > 1.0
@@ -135,3 +136,41 @@ def test_brake_rule(braked_s, speed, age_ms, expected):
 def test_a_brake_shorter_than_the_hover_is_refused():
     with pytest.raises(ValueError, match=r"watchdog\.brake_timeout_s"):
         WatchdogConfig(hold_grace_s=2.0, brake_timeout_s=1.0)
+
+
+def _moving(vel_enu, yaw_rad: float, t_posvel_ns: int) -> VehicleState:
+    from runtime.contract.frames import quat_from_euler
+
+    return VehicleState(vel_enu_m_s=np.asarray(vel_enu, dtype=float), t_posvel_ns=t_posvel_ns,
+                        quat_enu_flu=quat_from_euler(0.0, 0.0, yaw_rad))  # fmt: skip
+
+
+def test_the_brake_setpoint_opposes_the_measured_velocity_in_the_body_frame():
+    config = WatchdogConfig(brake_gain=1.0, brake_setpoint_max_m_s=1.5)
+    now = 10_000_000_000
+    # Facing north (ENU yaw 90 deg), moving north at 1.2 m/s: forward 1.2 -> command backwards 1.2.
+    sp = brake_setpoint(_moving([0.0, 1.2, 0.0], np.pi / 2, now - 20_000_000), now, config)
+    assert mavsdk_to_velocity_flu(sp) == pytest.approx([-1.2, 0.0, 0.0, 0.0], abs=1e-9)
+    # Fast: the setpoint's norm is capped; climbing: it asks to descend.
+    sp = brake_setpoint(_moving([3.0, 0.0, 1.0], 0.0, now - 20_000_000), now, config)
+    flu = mavsdk_to_velocity_flu(sp)
+    assert np.linalg.norm(flu[:3]) == pytest.approx(1.5) and flu[0] < 0 and flu[2] < 0
+
+
+@pytest.mark.parametrize("why", ["stale", "never", "gain 0"])
+def test_without_a_fresh_velocity_the_brake_asks_for_zero(why):
+    config = WatchdogConfig(brake_gain=0.0 if why == "gain 0" else 1.0)
+    now = 10_000_000_000
+    t_posvel = {"stale": now - 900_000_000, "never": 0, "gain 0": now}[why]
+    assert brake_setpoint(_moving([1.0, 0.0, 0.0], 0.0, t_posvel), now, config) == HOVER
+
+
+def test_an_active_brake_stops_sooner_than_a_zero_setpoint(goal_seeker):
+    """Against the lagging vehicle, commanding against the velocity halves the time to stop."""
+    zero, active = LaggingVehicle(), LaggingVehicle()
+    goal = START + np.array([4.0, 0.0, 0.0])
+    result_zero = asyncio.run(_fly(goal_seeker, zero, goal, brake_gain=0.0))
+    result_active = asyncio.run(_fly(goal_seeker, active, goal, brake_gain=1.0))
+    assert result_zero.brake["ended"] == result_active.brake["ended"] == "stopped"
+    assert result_active.brake["duration_s"] < 0.75 * result_zero.brake["duration_s"]
+    assert any(mavsdk_to_velocity_flu(sp)[0] < -0.1 for sp in active.setpoints)  # it commanded backwards

@@ -157,7 +157,10 @@ def test_nan_model_trips_before_any_policy_command(tmp_path):
     path = save(step_model(action_offset=float("nan")), tmp_path / "nan.onnx")
     result, vehicle = asyncio.run(_fly(path, START + np.array([5.0, 0, 0]), 10.0))
     assert result.outcome == "aborted" and result.watchdog_trips[0]["cause"] == "bad_action"
-    assert vehicle.setpoints == [HOVER] and vehicle.holds == 1  # the NaN never reached the vehicle
+    # The NaN never reached the vehicle: only the hover and the brake's setpoints (the vehicle is
+    # still, so they are zero too), then Hold.
+    assert vehicle.setpoints and all(np.allclose(mavsdk_to_velocity_flu(sp), 0.0) for sp in vehicle.setpoints)
+    assert vehicle.holds == 1
 
 
 def test_pilot_takeover_stops_commanding(goal_seeker):

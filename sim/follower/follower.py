@@ -291,6 +291,8 @@ class WorldFollower:
                                  "position_rate_hz": None if rate_hz is None else round(rate_hz, 1),
                                  "frames_withheld_stale_pose": self._stale_frames,
                                  "frames_withheld_unphysical": self._feed.withheld_unphysical if self._feed else 0,
+                                 "ground_truth_messages": v.truth_messages,
+                                 "followed": "ground truth" if v.truth_messages else "estimate",
                                  "bad_datagrams": self._link.bad_datagrams}  # fmt: skip
         write_json_atomic(self._config.trace_json, record)
         log.info("trace written to %s: %d poses, %d frames served, contact %s", self._config.trace_json,

@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
+from runtime.contract.frames import enu_to_ned
+from sim.sitl.geodetic import GeodeticHome
 from sim.sitl.mavlink_endpoint import MAX_DATAGRAM_BYTES, MAX_DATAGRAMS_PER_POLL, RECEIVE_BUFFER_BYTES, parse_datagram
 from sim.sitl.px4 import Px4Mode, UnknownModeError
 
@@ -26,6 +28,9 @@ from .placement import AutopilotPose
 log = logging.getLogger(__name__)
 
 POSE_RATE_HZ = 50.0
+# PX4 SIH's ground truth (HIL_STATE_QUATERNION, requested like the pose) is followed while it is at
+# most this old; otherwise the estimate (LOCAL_POSITION_NED + ATTITUDE_QUATERNION) is.
+GROUND_TRUTH_FRESH_S = 0.2
 # Our identity on the link: the companion's system id, a component of its own.
 SYSTEM_ID = 1
 COMPONENT_ID = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER2
@@ -61,6 +66,14 @@ class AutopilotView:
     prearm_ok: bool = False  # SYS_STATUS: prearm_passed
     landed_state: int = mavlink.MAV_LANDED_STATE_UNDEFINED
     home_local_ned_m: np.ndarray | None = None
+    home_geodetic: GeodeticHome | None = None  # HOME_POSITION's latitude, longitude, altitude
+    # The simulator's ground truth (HIL_STATE_QUATERNION), in the local NED frame through home.
+    truth_pos_ned_m: np.ndarray | None = None
+    truth_vel_ned_m_s: np.ndarray | None = None
+    truth_quat_ned_frd: np.ndarray | None = None
+    truth_rates_frd_rad_s: np.ndarray | None = None
+    t_truth_ns: int = 0
+    truth_messages: int = 0
     pos_ned_m: np.ndarray | None = None
     vel_ned_m_s: np.ndarray | None = None
     t_position_ns: int = 0
@@ -73,11 +86,25 @@ class AutopilotView:
     events: list[tuple[float, str]] = field(default_factory=list)
 
     def pose(self) -> AutopilotPose | None:
-        """The latest position and attitude combined (stamped with the newer), or None."""
+        """Where the vehicle is: the simulator's ground truth while it is fresh (what the camera
+        really sees and what really touches a wall), else the autopilot's estimate; None before
+        either.  PX4 SIH's EKF estimate wanders from the truth by up to ~1 m near the ground
+        (docs/px4-sitl.md), with a velocity of the opposite sign."""
+        if self.truth_pos_ned_m is not None and time.monotonic_ns() - self.t_truth_ns <= GROUND_TRUTH_FRESH_S * 1e9:
+            return AutopilotPose(self.t_truth_ns, self.truth_pos_ned_m, self.truth_vel_ned_m_s,
+                                 self.truth_quat_ned_frd, self.truth_rates_frd_rad_s)  # fmt: skip
+        return self.estimate()
+
+    def estimate(self) -> AutopilotPose | None:
+        """The autopilot's estimate: the latest position and attitude combined (stamped with the newer)."""
         if self.pos_ned_m is None or self.quat_ned_frd is None:
             return None
         return AutopilotPose(max(self.t_position_ns, self.t_attitude_ns), self.pos_ned_m, self.vel_ned_m_s,
                              self.quat_ned_frd, self.rates_frd_rad_s)  # fmt: skip
+
+    @property
+    def following_truth(self) -> bool:
+        return self.truth_pos_ned_m is not None and time.monotonic_ns() - self.t_truth_ns <= GROUND_TRUTH_FRESH_S * 1e9
 
     def position_rate_hz(self) -> float | None:
         """LOCAL_POSITION_NED messages per second received so far (None: fewer than two)."""
@@ -121,6 +148,7 @@ class PoseLink:
             (mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED): 0.0,
             (mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION): 0.0,
             (mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_HOME_POSITION): 0.0,
+            (mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_HIL_STATE_QUATERNION): 0.0,
         }
         self._refused: set[tuple[int, int]] = set()
         self._t_heartbeat_s = 0.0
@@ -193,6 +221,22 @@ class PoseLink:
             v.landed_state = msg.landed_state
         elif kind == "HOME_POSITION":
             v.home_local_ned_m = np.array([msg.x, msg.y, msg.z], dtype=np.float64)
+            v.home_geodetic = GeodeticHome(msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
+        elif kind == "HIL_STATE_QUATERNION":
+            if v.home_geodetic is None or v.home_local_ned_m is None:
+                return []
+            q = np.array(msg.attitude_quaternion, dtype=np.float64)
+            norm = float(np.linalg.norm(q))
+            if not math.isfinite(norm) or norm < 0.5:
+                return []
+            offset_enu = v.home_geodetic.to_enu(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
+            v.truth_pos_ned_m = v.home_local_ned_m + enu_to_ned(offset_enu)
+            v.truth_vel_ned_m_s = np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64) * 0.01  # cm/s
+            v.truth_quat_ned_frd = q / norm
+            v.truth_rates_frd_rad_s = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=np.float64)
+            v.t_truth_ns = now_ns
+            v.truth_messages += 1
+            kind = "pose"
         elif kind == "LOCAL_POSITION_NED":
             v.pos_ned_m = np.array([msg.x, msg.y, msg.z], dtype=np.float64)
             v.vel_ned_m_s = np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64)
@@ -228,6 +272,10 @@ class PoseLink:
         if msg.result == mavlink.MAV_RESULT_ACCEPTED:
             del self._requests[key]
             log.info("autopilot accepted %s for message %d", mavlink.enums["MAV_CMD"][key[0]].name, key[1])
+        elif msg.result != mavlink.MAV_RESULT_IN_PROGRESS and key[1] == mavlink.MAVLINK_MSG_ID_HIL_STATE_QUATERNION:
+            del self._requests[key]  # no simulator ground truth here (a real vehicle): follow the estimate
+            log.info("autopilot has no ground truth (HIL_STATE_QUATERNION %s): following its estimate",
+                     mavlink.enums["MAV_RESULT"][msg.result].name)  # fmt: skip
         elif msg.result != mavlink.MAV_RESULT_IN_PROGRESS and key not in self._refused:
             self._refused.add(key)
             log.error("autopilot answered %s for message %d with %s; retrying every %.0f s",

@@ -87,6 +87,7 @@ class Telemetry:
             mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: lambda kin, st: self.global_position_int(kin),
             mavlink.MAVLINK_MSG_ID_ODOMETRY: lambda kin, st: self.odometry(kin),
             mavlink.MAVLINK_MSG_ID_ALTITUDE: lambda kin, st: self.altitude(kin),
+            mavlink.MAVLINK_MSG_ID_HIL_STATE_QUATERNION: lambda kin, st: self.hil_state_quaternion(kin),
         }
 
     def can_build(self, msg_id: int) -> bool:
@@ -194,6 +195,19 @@ class Telemetry:
             self._time_usec(kin.t_ns), mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_NED,
             *(float(v) for v in pos), [float(v) for v in q], *(float(v) for v in vel_ned),
             *(float(v) for v in rates), _NAN_COVARIANCE, _NAN_COVARIANCE, 0, mavlink.MAV_ESTIMATOR_TYPE_NAIVE, 100,
+        )  # fmt: skip
+
+    def hil_state_quaternion(self, kin: Kinematics) -> mavlink.MAVLink_message:
+        """The simulator's ground truth, as PX4 SIH streams it on request: geodetic position,
+        velocity NED (cm/s), attitude FRD -> NED, body rates (our state is exact: the same as the
+        estimate)."""
+        q, rates = self._attitude_ned_frd(kin)
+        lat, lon, alt = self._geo.to_geodetic(kin.pos_enu_m - self._home_enu_m)
+        vel_ned = enu_to_ned(kin.vel_enu_m_s)
+        return mavlink.MAVLink_hil_state_quaternion_message(
+            self._time_usec(kin.t_ns), [float(v) for v in q], *(float(v) for v in rates),
+            int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)),
+            *(int(round(v * 100)) for v in vel_ned), 0, 0, 0, 0, 0,
         )  # fmt: skip
 
     def altitude(self, kin: Kinematics) -> mavlink.MAVLink_message:

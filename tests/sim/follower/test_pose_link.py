@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from sim.follower.pose_link import POSE_RATE_HZ, PoseLink
+from sim.sitl.geodetic import GeodeticHome
+from sim.follower.pose_link import GROUND_TRUTH_FRESH_S, POSE_RATE_HZ, PoseLink
 from sim.follower.url import AutopilotUrlError, parse_autopilot_url
 from sim.sitl.px4 import HOLD, OFFBOARD
 
@@ -84,12 +85,13 @@ def test_requests_the_pose_at_50_hz_and_follows_what_arrives(link_and_autopilot)
                                               mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, HOLD.custom_mode, 3, 3))  # fmt: skip
     _poll_until(link, 10.0, lambda: link.peer is not None)
     assert link.view.system_id == 1 and link.view.mode == "HOLD" and not link.view.armed
-    commands = [m for m in ap.receive(4) if m.get_type() == "COMMAND_LONG"]
+    commands = [m for m in ap.receive(5) if m.get_type() == "COMMAND_LONG"]
     asked = {(c.command, int(c.param1)): c.param2 for c in commands}
     assert asked[(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED)] == 1e6 / POSE_RATE_HZ
     assert asked[(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION)] <= 20_000.0
     assert (mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_HOME_POSITION) in asked
-    assert len(link.requests_pending) == 3
+    assert asked[(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_HIL_STATE_QUATERNION)] == 1e6 / POSE_RATE_HZ
+    assert len(link.requests_pending) == 4
     ap.send(*(mavlink.MAVLink_command_ack_message(cmd, mavlink.MAV_RESULT_ACCEPTED, 0, 0, 1, 194) for cmd, _ in asked))
     corrupt = bytearray(mavlink.MAVLink_local_position_ned_message(1, 9.0, 9.0, 9.0, 0, 0, 0).pack(ap.mav))
     corrupt[12] ^= 0xFF  # a payload byte: the CRC no longer matches
@@ -127,3 +129,32 @@ def test_unanswered_requests_are_repeated_and_others_ignored(link_and_autopilot)
     again = [m for m in ap.receive(4) if m.get_type() == "COMMAND_LONG"]
     assert len(again) >= 3
     assert link.view.pos_ned_m is None  # system 42 is not the autopilot we follow
+
+
+def test_the_simulators_ground_truth_is_followed_while_it_is_fresh(link_and_autopilot):
+    """PX4 SIH streams its ground truth (HIL_STATE_QUATERNION) on request: the follower renders
+    and judges at it, in the local frame through home, not at the EKF's estimate, which wanders
+    from it near the ground; when the truth stops, the estimate is followed again."""
+    link, ap = link_and_autopilot
+    geo = GeodeticHome(47.397742, 8.545594, 488.0)
+    ap.send(mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4,
+                                              mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, HOLD.custom_mode, 3, 3))  # fmt: skip
+    _poll_until(link, 10.0, lambda: link.peer is not None)
+    lat, lon, alt = geo.to_geodetic(np.array([2.0, 1.0, 0.5]))  # 2 m east, 1 m north, 0.5 m up of home
+    ap.send(
+        mavlink.MAVLink_home_position_message(round(geo.lat_deg * 1e7), round(geo.lon_deg * 1e7), round(geo.alt_amsl_m * 1e3),
+                                              0.5, -0.25, 0.0, [1, 0, 0, 0], 0, 0, 0, 0),
+        mavlink.MAVLink_local_position_ned_message(100, 9.0, 9.0, -1.0, 0.3, 0.0, 0.0),  # the estimate, elsewhere
+        mavlink.MAVLink_attitude_quaternion_message(100, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, [0, 0, 0, 0]),
+        mavlink.MAVLink_hil_state_quaternion_message(100, [0.0, 0.0, 0.0, 1.0], 0.0, 0.0, 0.1, round(lat * 1e7),
+                                                     round(lon * 1e7), round(alt * 1e3), -20, 40, 0, 0, 0, 0, 0, 0),
+    )  # fmt: skip
+    _poll_until(link, 10.1, lambda: link.view.truth_messages > 0 and link.view.estimate() is not None)
+    truth = link.view.pose()
+    # Home's local NED plus the truth's offset from home (north 1, east 2, down -0.5).
+    np.testing.assert_allclose(truth.pos_ned_m, [0.5 + 1.0, -0.25 + 2.0, -0.5], atol=0.02)
+    np.testing.assert_allclose(truth.vel_ned_m_s, [-0.2, 0.4, 0.0], atol=1e-6)
+    np.testing.assert_allclose(truth.quat_ned_frd, [0.0, 0.0, 0.0, 1.0])
+    assert link.view.following_truth
+    time.sleep(GROUND_TRUTH_FRESH_S + 0.05)
+    np.testing.assert_allclose(link.view.pose().pos_ned_m, [9.0, 9.0, -1.0])  # the truth is stale: the estimate

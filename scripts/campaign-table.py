@@ -15,6 +15,7 @@ import collections
 import json
 import statistics
 import sys
+from pathlib import Path
 
 from training.stats import wilson_interval
 
@@ -29,6 +30,18 @@ def contact_after_goal(r: dict) -> bool:
     return bool(contact and goal_t is not None and contact["t_s"] >= goal_t)
 
 
+def contact_while_landing(r: dict) -> bool:
+    """The contact came after the goal, once the autopilot was landing (the trace's mode log)."""
+    if not contact_after_goal(r) or not r.get("run_dir"):
+        return False
+    try:
+        modes = json.loads((Path(r["run_dir"]) / "trace.json").read_text())["mode_log"]
+    except (OSError, ValueError, KeyError):
+        return False
+    t_contact = r["ground_truth"]["contact"]["t_s"]
+    return any(mode == "LAND" and t <= t_contact for t, mode in modes)
+
+
 def main(path: str) -> int:
     rows = [json.loads(line) for line in open(path) if line.strip().startswith("{")]
     by_level = collections.defaultdict(list)
@@ -37,7 +50,7 @@ def main(path: str) -> int:
         by_level[r["level"]].append(r)
     print("| level | flights | success % | 95 % interval | crash % | timeout % | other | time_s (success, median) | "
           "step p99 ms (median) | watchdog trips | trips without a crash | crashes caught <= 1.5 s | crash_detect_ms (median) | "
-          "tracking error sustained, m/s (max, no crash) | contact after goal | speed at Hold m/s (max) | tracking error p99 m/s (median) |")
+          "tracking error sustained, m/s (max, no crash) | contact after goal (of it while landing) | speed at Hold m/s (max) | tracking error p99 m/s (median) |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for level, rs in sorted(by_level.items()):
         n = len(rs)
@@ -51,12 +64,13 @@ def main(path: str) -> int:
         caught = sum(ms <= 1500.0 for ms in detect)
         peaks = [r["tracking_error_peak_m_s"] for r in rs if r["outcome"] != "crash" and r.get("tracking_error_peak_m_s") is not None]
         after_goal = sum(contact_after_goal(r) for r in rs)
+        landing = sum(contact_while_landing(r) for r in rs)
         hold_speeds = [r["brake"]["speed_at_hold_m_s"] for r in rs if (r.get("brake") or {}).get("speed_at_hold_m_s") is not None]
         tracking = [r["tracking_error_m_s"]["p99"] for r in rs if (r.get("tracking_error_m_s") or {}).get("p99") is not None]
         low, high = wilson_interval(count["success"], n)
         print(f"| {level} | {n} | {100 * count['success'] / n:.0f} | {100 * low:.0f}–{100 * high:.0f} | {100 * count['crash'] / n:.0f} | "
               f"{100 * count['timeout'] / n:.0f} | {other} | {_median(times):.1f} | {_median(p99):.1f} | {trips} | {len(false_trips)} | "
-              f"{caught}/{count['crash']} | {_median(detect):.0f} | {max(peaks) if peaks else float('nan'):.2f} | {after_goal} | "
+              f"{caught}/{count['crash']} | {_median(detect):.0f} | {max(peaks) if peaks else float('nan'):.2f} | {after_goal} ({landing}) | "
               f"{max(hold_speeds) if hold_speeds else float('nan'):.2f} | {_median(tracking):.2f} |")
         all_trips.update(t["cause"] for r in rs for t in r.get("watchdog_trips", []))
     print("watchdog trips by cause:", dict(all_trips) or "none")

@@ -1,8 +1,8 @@
 """The GPU pipeline's stages run on a machine with only torch, onnx, onnxruntime and numpy: no
 OpenCV, pytorch-msssim (used from vendor/), MCAP, Foxglove, MAVSDK, pymavlink, matplotlib, tqdm or
 TensorBoard.  Subprocesses get an import blocker through sitecustomize.py, then import every module
-of training, sim (less sim.sitl and sim.follower, which need pymavlink, and
-sim.tracking, which reads flight logs), runtime.contract, export and cmnav, and run
+of training, sim (less sim.sitl and sim.follower, which need pymavlink, sim.response, which flies
+through MAVSDK, and sim.tracking, which reads flight logs), runtime.contract, export and cmnav, and run
 `cmnav dataset`, `cmnav train cmwae` and `cmnav eval cmwae`."""
 
 import json
@@ -66,8 +66,10 @@ IMPORT_EVERYTHING = textwrap.dedent(
     names = []
     for package in (training, sim, runtime.contract, export, cmnav):
         for module in pkgutil.walk_packages(package.__path__, package.__name__ + "."):
-            # SITL only: MAVLink (sim.sitl, sim.follower) and flight logs (sim.tracking)
-            if module.name.split(".")[:2] in (["sim", "sitl"], ["sim", "follower"], ["sim", "tracking"]) or module.name.endswith(".__main__"):
+            # SITL only: MAVLink (sim.sitl, sim.follower, sim.response: flies through MAVSDK and
+            # reads tracking errors the way flight logs do) and flight logs (sim.tracking)
+            if module.name.split(".")[:2] in (["sim", "sitl"], ["sim", "follower"], ["sim", "tracking"], ["sim", "response"]) \
+                    or module.name.endswith(".__main__"):
                 continue
             importlib.import_module(module.name)
             names.append(module.name)

@@ -103,7 +103,9 @@ async def _mission(sitl) -> dict:
         assert _yaw_diff_deg(yaw1, yaw0) > 30.0 and rate.yaw_rad_s > 0.3
         await _fly(offboard, VelocityBodyYawspeed(0.0, 0.0, 0.0, -45.0), 1.5)
         yaw2 = (await telemetry.attitude_euler()).yaw_deg
-        assert _yaw_diff_deg(yaw2, yaw1) < -30.0
+        # Turning back first undoes the right turn's rate: PX4's yaw answers 0.12 s late with a
+        # 0.3 s lag and at most 2.6 rad/s^2 (sim.dynamics.PX4_SIH_V1_16), so 1.5 s give ~-22 deg.
+        assert _yaw_diff_deg(yaw2, yaw1) < -15.0
 
         # Positive down velocity descends.
         down0 = (await telemetry.position_velocity_ned()).position.down_m

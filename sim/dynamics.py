@@ -233,19 +233,7 @@ class QuadrotorDynamics:
         quat_new = _quat_from_axis_yaw(axis_new, yaw + yaw_rate_new * dt_s)
         angvel_new = quat_log(quat_multiply(quat_conjugate(state.quat_enu_flu), quat_new)) / dt_s
 
-        # Translation: thrust along the new axis, gravity, drag, kick; semi-implicit Euler.
-        thrust = (force_des * axis_new).sum(dim=-1).clamp_min(0.0)
-        accel = thrust.unsqueeze(-1) * axis_new - GRAVITY_M_S2 * up
-        accel = accel - (p.linear_drag_kg_s / p.mass_kg) * state.vel_enu_m_s
-        if kick_force_n is not None:
-            accel = accel + kick_force_n / p.mass_kg
-        vel_new = state.vel_enu_m_s + accel * dt_s
-        pos_new = state.pos_enu_m + vel_new * dt_s
-        if p.ground_contact:
-            on_ground = pos_new[:, 2] <= 0.0
-            pos_new = torch.cat([pos_new[:, :2], pos_new[:, 2:].clamp_min(0.0)], dim=-1)
-            vel_z = torch.where(on_ground, vel_new[:, 2].clamp_min(0.0), vel_new[:, 2])
-            vel_new = torch.cat([vel_new[:, :2], vel_z.unsqueeze(-1)], dim=-1)
+        pos_new, vel_new = _translate(state, force_des, axis_new, p.linear_drag_kg_s / p.mass_kg, kick_force_n, p, dt_s)
         return QuadState(pos_new, vel_new, quat_new, angvel_new,
                          integral if p.velocity_integral_gain_1_s2 > 0.0 else state.vel_error_integral_m)
 
@@ -304,18 +292,27 @@ class QuadrotorDynamics:
         quat_new = _quat_from_axis_yaw(axis_new, yaw + yaw_rate_new * dt_s)
         angvel_new = quat_log(quat_multiply(quat_conjugate(state.quat_enu_flu), quat_new)) / dt_s
 
-        thrust = (force_des * axis_new).sum(dim=-1).clamp_min(0.0)
-        accel = thrust.unsqueeze(-1) * axis_new - GRAVITY_M_S2 * up - drag_per_kg * state.vel_enu_m_s
-        if kick_force_n is not None:
-            accel = accel + kick_force_n / p.mass_kg
-        vel_new = state.vel_enu_m_s + accel * dt_s
-        pos_new = state.pos_enu_m + vel_new * dt_s
-        if p.ground_contact:
-            on_ground = pos_new[:, 2] <= 0.0
-            pos_new = torch.cat([pos_new[:, :2], pos_new[:, 2:].clamp_min(0.0)], dim=-1)
-            vel_z = torch.where(on_ground, vel_new[:, 2].clamp_min(0.0), vel_new[:, 2])
-            vel_new = torch.cat([vel_new[:, :2], vel_z.unsqueeze(-1)], dim=-1)
+        pos_new, vel_new = _translate(state, force_des, axis_new, drag_per_kg, kick_force_n, p, dt_s)
         return QuadState(pos_new, vel_new, quat_new, angvel_new, integral if keeps_integral else state.vel_error_integral_m)
+
+
+def _translate(state: QuadState, force_des: Tensor, axis_new: Tensor, drag_per_kg: float | Tensor,
+               kick_force_n: Tensor | None, p: DynamicsParams, dt_s: float) -> tuple[Tensor, Tensor]:
+    """Translation, shared by the scalar and the per-env step: thrust along the new axis, gravity,
+    linear drag (``drag_per_kg``, 1/s: a float or [B, 1]), kick; semi-implicit Euler; the floor
+    pushes back when ``ground_contact``.  Returns (pos [B, 3], vel [B, 3]), world ENU."""
+    thrust = (force_des * axis_new).sum(dim=-1).clamp_min(0.0)
+    accel = thrust.unsqueeze(-1) * axis_new - GRAVITY_M_S2 * _unit_z_like(state.pos_enu_m) - drag_per_kg * state.vel_enu_m_s
+    if kick_force_n is not None:
+        accel = accel + kick_force_n / p.mass_kg
+    vel_new = state.vel_enu_m_s + accel * dt_s
+    pos_new = state.pos_enu_m + vel_new * dt_s
+    if p.ground_contact:
+        on_ground = pos_new[:, 2] <= 0.0
+        pos_new = torch.cat([pos_new[:, :2], pos_new[:, 2:].clamp_min(0.0)], dim=-1)
+        vel_z = torch.where(on_ground, vel_new[:, 2].clamp_min(0.0), vel_new[:, 2])
+        vel_new = torch.cat([vel_new[:, :2], vel_z.unsqueeze(-1)], dim=-1)
+    return pos_new, vel_new
 
 
 def _unit_z_like(v: Tensor) -> Tensor:

@@ -36,21 +36,18 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from pymavlink import mavutil
-from pymavlink.dialects.v20 import common as mavlink
 
 from runtime.log.reader import FlightLogReader
 from runtime.log.rotation import LOG_GLOB
 from runtime.log.topics import TOPIC_TIMING
 from sim.linkfault import TcpLinkProxy, UdpLinkProxy
+from sim.sitl.ground_station import GroundStation, GroundStationTimeout
 from sim.sitl_session import free_port, stop_process
 
 log = logging.getLogger(__name__)
 
 ROOT = Path(__file__).resolve().parents[1]
-LOOPBACK = "127.0.0.1"
 READY_TIMEOUT_S = 60.0
-PX4_MAIN_MODE_AUTO, PX4_SUB_MODE_LOITER, PX4_MAIN_MODE_OFFBOARD = 4, 3, 6
 FAULTS = ("camera-stall", "telemetry-loss", "pilot-takeover", "camera-garbage", "vehicle-stuck")
 BYTES_PER_MB = 1e6
 
@@ -128,69 +125,21 @@ max_total_gb = {max_total_gb}
 """
 
 
-class Pilot:
+class Pilot(GroundStation):
     """The scripted pilot on the ground station's port: arm, take off, offboard; then watch."""
-
-    def __init__(self, port: int) -> None:
-        self.link = mavutil.mavlink_connection(f"udpin:{LOOPBACK}:{port}", source_system=255, source_component=190)
-        self.custom_mode = 0
-        self.height_m = 0.0
-        self.t_heartbeat_s = 0.0
-
-    def _pump(self, timeout_s: float):
-        msg = self.link.recv_match(blocking=True, timeout=timeout_s)
-        if msg is not None and msg.get_srcSystem() == 1:
-            if msg.get_type() == "HEARTBEAT" and msg.get_srcComponent() == 1:
-                self.custom_mode, self.t_heartbeat_s = msg.custom_mode, time.monotonic()
-            elif msg.get_type() == "LOCAL_POSITION_NED":
-                self.height_m = -msg.z
-        return msg
-
-    def main_mode(self) -> int:
-        return (self.custom_mode >> 16) & 0xFF
-
-    def in_hold(self) -> bool:
-        return self.main_mode() == PX4_MAIN_MODE_AUTO and (self.custom_mode >> 24) & 0xFF == PX4_SUB_MODE_LOITER
-
-    def wait(self, predicate, timeout_s: float, what: str) -> None:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            self._pump(0.05)
-            if predicate():
-                return
-        raise SoakError(f"pilot: {what} not seen within {timeout_s} s: see sitl.log and fly.log")
-
-    def command(self, command: int, params: list[float], timeout_s: float, what: str) -> None:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            self.link.mav.command_long_send(1, 1, command, 0, *(params + [0.0] * (7 - len(params))))
-            ack_deadline = time.monotonic() + 0.5
-            while time.monotonic() < ack_deadline:
-                msg = self._pump(0.05)
-                if msg is not None and msg.get_type() == "COMMAND_ACK" and msg.command == command:
-                    if msg.result == mavlink.MAV_RESULT_ACCEPTED:
-                        return
-                    break
-            time.sleep(0.2)
-        raise SoakError(f"pilot: {what} not accepted within {timeout_s} s: see sitl.log")
 
     def fly_episode(self, takeoff_alt_m: float, episode_timeout_s: float) -> None:
         """Arm, take off, offboard; return when the vehicle left offboard (or the episode's time is up)."""
         self.t_heartbeat_s = 0.0
         self.wait(lambda: self.t_heartbeat_s > 0.0, 20.0, "the new vehicle's heartbeat")
-        self.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [1.0], 30.0, "arm")
-        self.command(mavlink.MAV_CMD_NAV_TAKEOFF, [float("nan")] * 7, 5.0, "takeoff")
-        self.wait(lambda: self.in_hold() and self.height_m > 0.9 * takeoff_alt_m, 30.0, "takeoff done, Hold")
+        self.arm_and_take_off(takeoff_alt_m, arm_timeout_s=30.0)
         # Accepted once the runtime streams setpoints (it does while it waits for the pilot).
-        self.command(mavlink.MAV_CMD_DO_SET_MODE, [mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 6.0, 0.0], 20.0, "offboard")
+        self.switch_to_offboard(timeout_s=20.0)
         try:  # telemetry-loss silences the vehicle: then the episode's time bounds the wait
-            self.wait(lambda: self.main_mode() != PX4_MAIN_MODE_OFFBOARD, episode_timeout_s + 8.0, "the end of the episode")
-        except SoakError:
+            self.wait(lambda: not self.in_offboard(), episode_timeout_s + 8.0, "the end of the episode")
+        except GroundStationTimeout:
             log.info("no mode change seen (vehicle silent?): the episode's time is up")
         time.sleep(1.5)  # the runtime's Hold grace and log close
-
-    def close(self) -> None:
-        self.link.close()
 
 
 # ---------------------------------------------------------------------------------------------

@@ -17,16 +17,13 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from pymavlink import mavutil
-from pymavlink.dialects.v20 import common as mavlink
-
+from sim.sitl.ground_station import GroundStation
 from sim.sitl_session import free_port, stop_process
 
 ROOT = Path(__file__).resolve().parents[2]
 LOOPBACK = "127.0.0.1"
 READY_TIMEOUT_S = 60.0
 FLY_TIMEOUT_S = 120.0
-PX4_MAIN_MODE_AUTO, PX4_SUB_MODE_LOITER = 4, 3  # Hold
 
 
 class NotifyListener:
@@ -195,62 +192,8 @@ def finish_fly(proc: subprocess.Popen, tmp_path: Path) -> tuple[int, dict]:
     return proc.returncode, summary
 
 
-class Pilot:
-    """A ground station / RC pilot over pymavlink: arms, takes off, selects offboard."""
-
-    def __init__(self, port: int) -> None:
-        self.link = mavutil.mavlink_connection(f"udpin:{LOOPBACK}:{port}", source_system=255, source_component=190)
-        self.heartbeat = None
-        self.height_m = 0.0
-
-    def _recv(self, timeout_s: float):
-        msg = self.link.recv_match(blocking=True, timeout=timeout_s)
-        if msg is not None and msg.get_srcSystem() == 1:
-            if msg.get_type() == "HEARTBEAT" and msg.get_srcComponent() == 1:
-                self.heartbeat = msg
-            elif msg.get_type() == "LOCAL_POSITION_NED":
-                self.height_m = -msg.z
-        return msg
-
-    def wait(self, predicate, timeout_s: float, what: str) -> None:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            self._recv(0.05)
-            if predicate():
-                return
-        raise AssertionError(f"{what} not seen within {timeout_s} s")
-
-    def command_until_accepted(self, command: int, params: list[float], timeout_s: float, what: str) -> None:
-        """COMMAND_LONG, repeated until the vehicle ACKs it as accepted (e.g. arming waits for health)."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            self.link.mav.command_long_send(1, 1, command, 0, *(params + [0.0] * (7 - len(params))))
-            ack_deadline = time.monotonic() + 0.5
-            while time.monotonic() < ack_deadline:
-                msg = self._recv(0.05)
-                if msg is not None and msg.get_type() == "COMMAND_ACK" and msg.command == command:
-                    if msg.result == mavlink.MAV_RESULT_ACCEPTED:
-                        return
-                    break
-            time.sleep(0.2)
-        raise AssertionError(f"{what} not accepted within {timeout_s} s")
-
-    def arm_and_take_off(self, takeoff_alt_m: float) -> None:
-        """Arm, take off, and wait for the climb to end in Hold (as a pilot does before offboard)."""
-        self.command_until_accepted(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [1.0], 20.0, "arm")
-        self.command_until_accepted(mavlink.MAV_CMD_NAV_TAKEOFF, [float("nan")] * 7, 5.0, "takeoff")
-        self.wait(lambda: self.in_hold() and self.height_m > 0.9 * takeoff_alt_m, 30.0, "takeoff done, Hold")
-
-    def switch_to_offboard(self) -> None:
-        self.command_until_accepted(mavlink.MAV_CMD_DO_SET_MODE, [mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 6.0, 0.0],
-                                    5.0, "switch to offboard")  # fmt: skip
-
-    def in_hold(self) -> bool:
-        mode = self.heartbeat.custom_mode if self.heartbeat else 0
-        return (mode >> 16) & 0xFF == PX4_MAIN_MODE_AUTO and (mode >> 24) & 0xFF == PX4_SUB_MODE_LOITER
-
-    def close(self) -> None:
-        self.link.close()
+class Pilot(GroundStation):
+    """A ground station / RC pilot over pymavlink: arms, takes off, selects offboard (``sim.sitl.ground_station``)."""
 
 
 @dataclass

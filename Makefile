@@ -33,8 +33,11 @@ models/default.onnx: $(BIN)/.installed models/cmwae-pooled/model.json models/stu
 sitl: $(BIN)/.installed $(MODEL)
 	$(BIN)/cmnav sitl --model $(MODEL) --level $(LEVEL) --seed $(SEED) --json || [ $$? -eq 1 ]
 
+# The real-time SITL flights (marker `flight`, ~0.5 core each, mostly waiting on the clock) two at
+# a time, after the rest; `pytest -q` alone runs everything in one process.
 test: $(BIN)/.installed
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -m "not flight"
+	$(BIN)/python -m pytest -q -m flight -n 2
 
 clean:
 	rm -rf runs .pytest_cache .hypothesis

@@ -17,7 +17,8 @@ the episodes after the warm-up, never from durations:
 
 - RSS: slope × (N − warm-up) < ``--rss-growth-mb`` (the issue's bound: 10 MB from episode 10 to 200);
 - fds, threads: slope × (N − warm-up) < 1 (constant: not one more per run);
-- step p99: the median of the last ``warm-up`` episodes within ``--p99-tolerance`` of the first ones';
+- step p99: the median of the last ``warm-up`` episodes within ``--p99-tolerance`` of the first ones'
+  (a benchmark's check: the CI test reports it and leaves it unjudged, its cores being shared);
 - log directory within its cap at every episode; every replayed log replays.
 """
 
@@ -28,6 +29,7 @@ import csv
 import json
 import logging
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -37,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from runtime.log.reader import FlightLogReader
+from runtime.log.reader import MCAP_MAGIC, FlightLogReader
 from runtime.log.rotation import LOG_GLOB
 from runtime.log.topics import TOPIC_TIMING
 from sim.linkfault import TcpLinkProxy, UdpLinkProxy
@@ -174,8 +176,9 @@ def slope_per_episode(episodes: list[int], values: list[float]) -> float:
     return float(np.polyfit(np.asarray(episodes, float), np.asarray(values, float), 1)[0])
 
 
-def verdict(samples: list[EpisodeSample], warmup: int, rss_growth_mb: float, p99_tolerance: float) -> dict:
-    """The trend check: fitted slopes over the episodes after the warm-up (see the module docstring)."""
+def verdict(samples: list[EpisodeSample], warmup: int, rss_growth_mb: float, p99_tolerance: float | None) -> dict:
+    """The trend check: fitted slopes over the episodes after the warm-up (see the module docstring).
+    ``p99_tolerance`` None: the step p99 ratio is reported, not judged (a test on a shared machine)."""
     after = [s for s in samples if s.episode > warmup]
     span = max(1, len(after) - 1)
     eps = [s.episode for s in after]
@@ -187,7 +190,8 @@ def verdict(samples: list[EpisodeSample], warmup: int, rss_growth_mb: float, p99
         "rss_growth_mb": (slopes["rss_mb"] * span, slopes["rss_mb"] * span < rss_growth_mb),
         "fd_growth": (slopes["fds"] * span, slopes["fds"] * span < 1.0),
         "thread_growth": (slopes["threads"] * span, slopes["threads"] * span < 1.0),
-        "step_p99_last_over_first": (p99_ratio, p99_ratio is None or abs(p99_ratio - 1.0) <= p99_tolerance),
+        "step_p99_last_over_first": (p99_ratio, p99_tolerance is None or p99_ratio is None
+                                     or abs(p99_ratio - 1.0) <= p99_tolerance),
         "log_dir_within_cap": (max((s.log_dir_mb - s.log_cap_mb for s in samples), default=0.0),
                                all(s.log_dir_mb <= s.log_cap_mb and s.logs_kept <= s.max_logs for s in samples)),
         "logs_replay": (sum(s.replay_ok is False for s in samples), all(s.replay_ok is not False for s in samples)),
@@ -245,7 +249,7 @@ def write_png(path: Path, samples: list[EpisodeSample], result: dict) -> bool:
 
 def run_soak(model: Path, out: Path, episodes: int, levels: list[int], fault_every: int, warmup: int, replay: bool,
              episode_timeout_s: float, max_logs: int, max_total_gb: float, rss_growth_mb: float,
-             p99_tolerance: float) -> dict:  # fmt: skip
+             p99_tolerance: float | None) -> dict:  # fmt: skip
     """Fly ``episodes`` episodes in one ``cmnav fly`` process; returns the verdict (also written to
     ``out/verdict.json``, with ``soak.csv`` and ``soak.png``)."""
     out.mkdir(parents=True, exist_ok=True)
@@ -267,8 +271,9 @@ def run_soak(model: Path, out: Path, episodes: int, levels: list[int], fault_eve
             if runtime is None:
                 gx, gy, gz = world["goal_rel_home_enu_m"]
                 config = out / "cmnav.toml"
+                # One episode more than flown: the process outlives the last one to be sampled, then is stopped.
                 config.write_text(fly_config(model, runtime_port, camera_link.port, [gx / 3.0, gy / 3.0, gz], log_dir,
-                                             episodes, episode_timeout_s, max_logs, max_total_gb))  # fmt: skip
+                                             episodes + 1, episode_timeout_s, max_logs, max_total_gb))  # fmt: skip
                 with open(out / "fly.log", "w") as fly_log:
                     runtime = subprocess.Popen([sys.executable, "-m", "cmnav", "fly", "--config", str(config), "--json"],
                                                cwd=ROOT, stdout=subprocess.PIPE, stderr=fly_log, text=True,
@@ -321,14 +326,15 @@ def _sample(pid: int, episode: int, level: int, seed: int, inject: str, log_dir:
 
 
 def _wait_closed(log_path: Path, timeout_s: float = 15.0) -> None:
-    """Until the episode's log has its footer (the runtime closes it after the Hold), bounded."""
+    """Until the episode's log ends with MCAP's closing magic (the runtime closes it after the Hold), bounded."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        reader = FlightLogReader(log_path)
-        for _ in reader.messages(()):
-            pass
-        if reader.stopped_early is None:
-            return
+        with open(log_path, "rb") as f:
+            f.seek(0, os.SEEK_END)
+            if f.tell() >= 2 * len(MCAP_MAGIC):
+                f.seek(-len(MCAP_MAGIC), os.SEEK_END)
+                if f.read() == MCAP_MAGIC:
+                    return
         time.sleep(0.2)
     log.warning("%s still has no footer after %.0f s: sampled as it is", log_path, timeout_s)
 
@@ -342,7 +348,9 @@ def _wait_started(runtime: subprocess.Popen, fly_log: Path, timeout_s: float = 1
 
 
 def _finish(runtime: subprocess.Popen) -> dict:
-    """Wait for ``cmnav fly`` to exit after its last episode; its JSON summary."""
+    """Stop ``cmnav fly`` (waiting for the pilot after its last episode) as systemd does, by SIGTERM;
+    its JSON summary."""
+    runtime.send_signal(signal.SIGTERM)
     try:
         stdout, _ = runtime.communicate(timeout=30.0)
     except subprocess.TimeoutExpired:

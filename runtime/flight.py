@@ -96,6 +96,16 @@ class EpisodeResult:
         return {("frames" if key == "steps" else key): value for key, value in record.items()}
 
 
+def settle_heap() -> None:
+    """Collect, then freeze what exists now (the model, the config, the imported libraries: it lives
+    for the whole flight) out of the garbage collector's sight, so that a collection during a step
+    stays short.  Before an episode's clock starts: a full collection of a large heap blocks the
+    loop (seen: > 250 ms in a long test process), which must not read as a stale camera.  Again
+    right after, it is cheap (the heap is frozen).  The episode's end unfreezes it."""
+    gc.collect()
+    gc.freeze()
+
+
 class FlightLoop:
     """Camera, policy, watchdog and logging tasks around one model, vehicle and camera."""
 
@@ -210,15 +220,12 @@ class FlightLoop:
     async def fly(self, goal_enu_m: np.ndarray, timeout_s: float) -> EpisodeResult:
         """Fly the policy from now (offboard active) to ``goal_enu_m`` (local ENU, m)."""
         self.set_goal(goal_enu_m)
+        settle_heap()
         episode = _Episode(t0_ns=time.monotonic_ns(), timeout_s=timeout_s)
         self.watchdog.start(episode.t0_ns, self.vehicle.state())
         self._on_watchdog_event({"event": "start", "detail": repr(self.config.watchdog), "t_s": 0.0})
         log.info("episode start: goal %s (local ENU m), time limit %.1f s", np.round(self._goal_enu_m, 2), timeout_s)
         await self.watchdog.check_goal(self._goal_enu_m, time.monotonic_ns())
-        # What exists now (the model, the config, the imported libraries) lives for the whole
-        # flight: out of the garbage collector's sight, a collection during a step stays short.
-        gc.collect()
-        gc.freeze()
         policy = asyncio.create_task(self._policy_task(episode), name="policy")
         watchdog = asyncio.create_task(self._watchdog_task(), name="watchdog")
         self.interrupted = None
@@ -233,6 +240,9 @@ class FlightLoop:
             for task in (policy, watchdog):
                 task.cancel()
             await asyncio.gather(policy, watchdog, return_exceptions=True)
+            # What was frozen at the start (the last episode's report being drawn, its closing
+            # log, ...) may be garbage by now: collectable again, or it would pile up by the episode.
+            gc.unfreeze()
         return self._result(episode)
 
     async def _supervise(self, episode: "_Episode", policy: asyncio.Task, watchdog: asyncio.Task) -> None:

@@ -334,11 +334,13 @@ def _wait_runtime(runtime: subprocess.Popen, request: SitlRequest, status_path: 
             return sent
         t_offboard_s = _vehicle_offboard_entry(status_path) if fault is not None and sent is None else None
         if t_offboard_s is not None and time.monotonic() >= t_offboard_s + fault.at_s:
+            # Stamped before it is sent: the runtime's handler can run (and stamp its own time)
+            # before this process is scheduled again, which on loaded cores took seconds.
+            sent = RuntimeSignal(fault.kind, time.monotonic(), time.time())
             if fault.kind == FaultKind.RUNTIME_KILL:
                 runtime.kill()  # SIGKILL by PID: no handler runs, MAVSDK's setpoint re-sending dies with it
             else:
                 runtime.send_signal(signal.SIGTERM)  # by PID: what systemd sends; the runtime's stop handling runs
-            sent = RuntimeSignal(fault.kind, time.monotonic(), time.time())
             log.warning("runtime (pid %d) sent %s %.2f s after the vehicle entered OFFBOARD (%s)", runtime.pid,
                         "SIGKILL" if fault.kind == FaultKind.RUNTIME_KILL else "SIGTERM", sent.t_s - t_offboard_s, fault)  # fmt: skip
             if fault.kind == FaultKind.RUNTIME_KILL:

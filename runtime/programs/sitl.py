@@ -43,7 +43,7 @@ from ..config import PolicyModelConfig, ProcessConfig, RecorderConfig, RuntimeCo
 from ..contract import ContractMismatchError
 from ..faults.catalogue import FaultKind, FaultSite, Injection, InjectionError, parse_injection
 from ..faults.injection import FaultyPolicy, shrink_geofence, shrink_geofence_at
-from ..flight import EpisodeResult, FlightLoop, log_task_failure
+from ..flight import EpisodeResult, FlightLoop, log_task_failure, settle_heap
 from ..log.recorder import Recorder, RecorderError
 from ..model import ModelLoadError, PolicyModel, check_outputs_finite
 from ..service.affinity import prepare_control_process
@@ -187,6 +187,7 @@ async def _fly_with_faults(
     summary: dict,
 ) -> EpisodeResult:  # fmt: skip
     """``loop.fly`` with the runtime's injected faults armed (none: just ``loop.fly``)."""
+    settle_heap()  # here, not only in loop.fly: the faults' clock and the episode's start together
     t0_ns = time.monotonic_ns()
     summary["t_episode_start_s"] = t0_ns / 1e9
     if not injections:

@@ -80,9 +80,12 @@ class GroundStation:
         self.wait(lambda: self.in_hold() and self.height_m > 0.9 * takeoff_alt_m, 30.0, "takeoff done, Hold")
 
     def switch_to_offboard(self, timeout_s: float = 5.0) -> None:
+        """Select offboard; return once the HEARTBEAT reports it (the ACK comes first: a HEARTBEAT
+        still saying Hold after it would read as "offboard already left")."""
         self.command_until_accepted(mavlink.MAV_CMD_DO_SET_MODE,
                                     [mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, float(MainMode.OFFBOARD), 0.0],
                                     timeout_s, "switch to offboard")  # fmt: skip
+        self.wait(self.in_offboard, timeout_s, "OFFBOARD in the vehicle's HEARTBEAT")
 
     def close(self) -> None:
         self.link.close()

@@ -133,6 +133,7 @@ def test_cpu_peak_states_its_assumptions():
         assert peak["peak_gflop_s"] == pytest.approx(2 * peak["flop_per_cycle_per_core"] * peak["clock_ghz"], rel=1e-3)
 
 
+@pytest.mark.flight
 def test_sitl_flights_per_variant_with_the_runtime_pinned(exported):
     """The quick SITL path flies fp32 and int8 (not fp16) with the runtime on a core of its own and
     reports the overhead split by stage: structure only, never the times."""

@@ -4,6 +4,7 @@ episode on CI's 2 cores, and a leak is per episode, not per weight) that fails o
 
 from __future__ import annotations
 
+import csv
 from pathlib import Path
 
 import pytest
@@ -36,21 +37,35 @@ def test_flat_curves_pass_and_each_growing_one_fails():
     assert not verdict(thread_leak, CI_WARMUP, CI_RSS_GROWTH_MB, 0.2)["checks"]["thread_growth"]["ok"]
     creeping = _samples([300.0] * 10, p99=[8.0, 8.0, 8.0, 9, 10, 11, 12, 13, 14, 15])
     assert not verdict(creeping, CI_WARMUP, CI_RSS_GROWTH_MB, 0.2)["checks"]["step_p99_last_over_first"]["ok"]
+    assert verdict(creeping, CI_WARMUP, CI_RSS_GROWTH_MB, None)["ok"]  # reported, not judged
     over_cap = _samples([300.0] * 10)
     over_cap[5].log_dir_mb = 1500.0
     assert not verdict(over_cap, CI_WARMUP, CI_RSS_GROWTH_MB, 0.2)["checks"]["log_dir_within_cap"]["ok"]
 
 
+@pytest.mark.flight
 @pytest.mark.timeout(420)
 def test_ten_episodes_in_one_runtime_show_no_growing_trend(tmp_path: Path):
     model = tmp_path / "goal-seeker.onnx"
     export_goal_seeker(str(model))
     out = tmp_path / "soak"
-    # Rotation caps small enough to act: 4 files kept of 10 episodes.
-    result = run_soak(model, out, CI_EPISODES, levels=[0, 1], fault_every=5, warmup=CI_WARMUP, replay=True,
+    # Rotation caps small enough to act: 4 files kept of 10 episodes; faults in episodes 4 and 8, so
+    # that the last samples are of fault-free episodes (a silenced vehicle leaves its socket open a while).
+    result = run_soak(model, out, CI_EPISODES, levels=[0, 1], fault_every=4, warmup=CI_WARMUP, replay=True,
                       episode_timeout_s=4.0, max_logs=4, max_total_gb=1.0, rss_growth_mb=CI_RSS_GROWTH_MB,
-                      p99_tolerance=1.0)  # fmt: skip
+                      p99_tolerance=None)  # fmt: skip
     assert (out / "soak.csv").exists() and (out / "soak.png").exists()
-    rows = (out / "soak.csv").read_text().splitlines()
-    assert len(rows) == CI_EPISODES + 1
+    with open(out / "soak.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == CI_EPISODES
+    # Every episode was flown, not cut short at its start: fault-free ones for seconds (a pilot
+    # that took the ACK of its offboard switch for the end of the episode stopped the vehicle at
+    # once), some to the goal; the injected faults ended theirs as the watchdog's rules say.
+    clean = [r for r in rows if not r["inject"]]
+    assert all(int(r["steps"]) >= 30 for r in clean), rows
+    assert any(r["outcome"] == "success" for r in clean), rows
+    assert {r["inject"]: r["abort_reason"] for r in rows if r["inject"]} == {
+        "camera-stall@1.5": "stale_frame", "telemetry-loss@1.5": "stale_telemetry"}, rows
     assert result["ok"], result
+    # Timing is the benchmark's to judge (scripts/soak.sh); here it is measured and reported.
+    assert result["checks"]["step_p99_last_over_first"]["value"] > 0.0

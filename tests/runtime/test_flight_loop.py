@@ -129,9 +129,17 @@ def test_reaches_goal_then_hover_and_hold(goal_seeker, tmp_path):
     goal = START + np.array([1.2, 1.2, 0.3])  # ahead-left and above: it has to turn left and climb
     recorder = Recorder(tmp_path / "f.mcap", RecorderConfig(flush_period_s=0.2))
     gc.unfreeze()
-    result, vehicle = asyncio.run(_fly(goal_seeker, goal, 20.0, recorder=recorder))
+    frozen_in_flight = []
+
+    async def in_flight(vehicle):
+        await asyncio.sleep(0.5)
+        frozen_in_flight.append(gc.get_freeze_count())
+
+    result, vehicle = asyncio.run(_fly(goal_seeker, goal, 20.0, during=in_flight, recorder=recorder))
     recorder.close()
-    assert gc.get_freeze_count() > 0  # what existed before the episode was kept out of the collector's reach
+    # What existed before the episode was kept out of the collector's reach while it flew, and
+    # handed back after (or what was alive then and garbage later would never be collected).
+    assert frozen_in_flight[0] > 0 and gc.get_freeze_count() == 0
     assert result.outcome == "success", result
     assert result.final_distance_m < 1.0 and result.watchdog_trips == []
     assert result.steps > 5 and result.step_ms["p50"] is not None

@@ -15,7 +15,7 @@ from mavsdk.asyncio.plugins.manual_control import ManualControlAsync
 from mavsdk.asyncio.plugins.offboard import OffboardAsync, OffboardError, OffboardResult, VelocityBodyYawspeed
 from mavsdk.asyncio.plugins.telemetry import FlightMode, LandedState, TelemetryAsync
 
-pytestmark = pytest.mark.timeout(90)
+pytestmark = [pytest.mark.timeout(90), pytest.mark.flight]
 
 
 async def _wait_for(stream, predicate, timeout_s: float, what: str):

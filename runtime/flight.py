@@ -22,6 +22,7 @@ watchdog trip or the pilot taking over.
 from __future__ import annotations
 
 import asyncio
+import ctypes
 import dataclasses
 import gc
 import logging
@@ -97,13 +98,33 @@ class EpisodeResult:
 
 
 def settle_heap() -> None:
-    """Collect, then freeze what exists now (the model, the config, the imported libraries: it lives
-    for the whole flight) out of the garbage collector's sight, so that a collection during a step
-    stays short.  Before an episode's clock starts: a full collection of a large heap blocks the
-    loop (seen: > 250 ms in a long test process), which must not read as a stale camera.  Again
-    right after, it is cheap (the heap is frozen).  The episode's end unfreezes it."""
+    """Collect, give the freed memory back to the system, then freeze what exists now (the model,
+    the config, the imported libraries: it lives for the whole flight) out of the garbage
+    collector's sight, so that a collection during a step stays short.  Before an episode's clock
+    starts: a full collection of a large heap blocks the loop (seen: > 250 ms in a long test
+    process), which must not read as a stale camera.  Again right after, it is cheap (the heap is
+    frozen).  The episode's end unfreezes it."""
     gc.collect()
+    _malloc_trim()
     gc.freeze()
+
+
+def _malloc_trim() -> None:
+    """glibc's ``malloc_trim(0)``: free pages inside the allocator's arenas go back to the system.
+    Without it a service flying episode after episode keeps the fragments of every episode's
+    buffers (frames, logs, reports) in its RSS (soak: +0.1 MB an episode).  Nothing elsewhere."""
+    global _LIBC
+    if _LIBC is None:
+        try:
+            _LIBC = ctypes.CDLL("libc.so.6")
+            _LIBC.malloc_trim.argtypes = [ctypes.c_size_t]
+        except (OSError, AttributeError):
+            _LIBC = False  # not glibc (macOS, musl): nothing to trim
+    if _LIBC:
+        _LIBC.malloc_trim(0)
+
+
+_LIBC: ctypes.CDLL | bool | None = None
 
 
 class FlightLoop:

@@ -49,9 +49,10 @@ def test_ten_episodes_in_one_runtime_show_no_growing_trend(tmp_path: Path):
     model = tmp_path / "goal-seeker.onnx"
     export_goal_seeker(str(model))
     out = tmp_path / "soak"
-    # Rotation caps small enough to act: 4 files kept of 10 episodes; faults in episodes 4 and 8, so
-    # that the last samples are of fault-free episodes (a silenced vehicle leaves its socket open a while).
-    result = run_soak(model, out, CI_EPISODES, levels=[0, 1], fault_every=4, warmup=CI_WARMUP, replay=True,
+    # Rotation caps small enough to act: 4 files kept of 10 episodes.  Telemetry-loss last (episode
+    # 10): the silenced vehicle's socket stays open in the runtime for one to three episodes (the
+    # 200-episode run: back to 17 fds after each), a step ten episodes cannot tell from a leak.
+    result = run_soak(model, out, CI_EPISODES, levels=[0, 1], fault_every=5, warmup=CI_WARMUP, replay=True,
                       episode_timeout_s=4.0, max_logs=4, max_total_gb=1.0, rss_growth_mb=CI_RSS_GROWTH_MB,
                       p99_tolerance=None)  # fmt: skip
     assert (out / "soak.csv").exists() and (out / "soak.png").exists()

@@ -24,6 +24,7 @@ from __future__ import annotations
 import asyncio
 import ctypes
 import dataclasses
+import functools
 import gc
 import logging
 import time
@@ -113,18 +114,20 @@ def _malloc_trim() -> None:
     """glibc's ``malloc_trim(0)``: free pages inside the allocator's arenas go back to the system.
     Without it a service flying episode after episode keeps the fragments of every episode's
     buffers (frames, logs, reports) in its RSS (soak: +0.1 MB an episode).  Nothing elsewhere."""
-    global _LIBC
-    if _LIBC is None:
-        try:
-            _LIBC = ctypes.CDLL("libc.so.6")
-            _LIBC.malloc_trim.argtypes = [ctypes.c_size_t]
-        except (OSError, AttributeError):
-            _LIBC = False  # not glibc (macOS, musl): nothing to trim
-    if _LIBC:
-        _LIBC.malloc_trim(0)
+    libc = _glibc()
+    if libc is not None:
+        libc.malloc_trim(0)
 
 
-_LIBC: ctypes.CDLL | bool | None = None
+@functools.cache
+def _glibc() -> ctypes.CDLL | None:
+    """The C library when it is glibc (it has malloc_trim); None elsewhere (macOS, musl)."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        libc.malloc_trim.argtypes = [ctypes.c_size_t]
+    except (OSError, AttributeError):
+        return None
+    return libc
 
 
 class FlightLoop:

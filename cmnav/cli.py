@@ -206,9 +206,10 @@ def _policy_train_config(args: argparse.Namespace, encoder_dir: str | None, corr
 def _cmd_train_policy(args: argparse.Namespace) -> int:
     if args.teacher is not None:
         return _train_student(args)
-    if args.field:
-        print("cmnav train policy: --field trains a student by DAgger: give --teacher TEACHER_DIR", file=sys.stderr)
-        return 2
+    for flag, given in (("--field", args.field), ("--vehicle", args.vehicle)):
+        if given:
+            print(f"cmnav train policy: {flag} trains a student by DAgger: give --teacher TEACHER_DIR", file=sys.stderr)
+            return 2
     from training.policy.train import train_policy
 
     out = train_policy(_policy_train_config(args, args.encoder, args.corruption))
@@ -226,7 +227,7 @@ def _train_student(args: argparse.Namespace) -> int:
         max_wall_s=None if args.minutes is None else args.minutes * 60.0,
         **_given(args, "device", "seed", "corruption", "minibatches", "min_level", "max_level", "checkpoint_every", "precision",
                  "lr", "beta_start", "beta_decay_env_steps", "projector_off_episode_fraction", "near_weight", "near_m",
-                 num_envs="envs", rollout_steps="rollout", env_steps="steps", field_conditions="field"),
+                 "vehicle", num_envs="envs", rollout_steps="rollout", env_steps="steps", field_conditions="field"),
     )  # fmt: skip
     out = train_dagger(config)
     print(f"student checkpoint in {out}")
@@ -641,6 +642,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="DAgger: train in the field, Table II's `field` condition (stereo depth in place of --corruption, the "
                    "gray camera's exposure and noise, image-to-command latency, PX4's randomized response, EKF2-like "
                    "state estimates, examples/cmnav.toml's speed caps)")  # fmt: skip
+    _config_option(policy, "--vehicle", "training.policy.dagger:DaggerConfig.vehicle", choices=("ideal", "px4"),
+                   help="DAgger: the vehicle the student flies: ideal (commands followed at once) or px4 (PX4 v1.16's "
+                   "identified response with its delays, image-to-command latency and EKF2-like estimates, randomized "
+                   "per episode: Table II's `px4`)")  # fmt: skip
     _config_option(policy, "--min-level", "training.policy.dagger:DaggerConfig.min_level", type=int,
                    help="DAgger: the lowest obstacle level; each episode's level is drawn uniformly from "
                    "[--min-level, --max-level]")  # fmt: skip
@@ -700,7 +705,9 @@ def build_parser() -> argparse.ArgumentParser:
         "(the training patches fixed for the whole episode), projector-off (depth lost like a D455 without "
         "its projector), stereo and stereo-projector-off (the simulated D455: depth matched from rendered IR "
         "images, projector on / off), patches-1-50px and patches-100px (Table I's 1-50 px and S2's 100 px "
-        "squares to 50 %, fixed for the episode).  Each cell gives success / timeout / crash % and the success "
+        "squares to 50 %, fixed for the episode), field (stereo depth and the sensor and vehicle as in the field) "
+        "and px4 (clean depth, PX4 v1.16's identified response with its delays and estimates).  Each cell gives "
+        "success / timeout / crash % and the success "
         "rate's Wilson 95 % interval.",
     )
     eval_policy.add_argument("--policy", required=True, help="policy checkpoint directory (cmnav train policy)")
@@ -708,7 +715,7 @@ def build_parser() -> argparse.ArgumentParser:
     _config_option(eval_policy, "--levels", "training.policy.evaluate:PolicyEvalConfig.levels", type=int_list, help="comma-separated")
     _config_option(eval_policy, "--conditions", "training.policy.evaluate:PolicyEvalConfig.conditions", type=_name_tuple,
                    help="comma-separated subset of clean,corrupted,projector-off,stereo,stereo-projector-off,"
-                   "patches-1-50px,patches-100px,field")  # fmt: skip
+                   "patches-1-50px,patches-100px,field,px4 (clean depth on PX4's response)")  # fmt: skip
     _config_option(eval_policy, "--episodes", "training.policy.evaluate:PolicyEvalConfig.episodes", type=int, help="episodes per cell")
     _config_option(eval_policy, "--batch-envs", "training.policy.evaluate:PolicyEvalConfig.batch_envs", type=int, help="episodes flown at once")
     _config_option(eval_policy, "--device", "training.policy.evaluate:PolicyEvalConfig.device", help="cpu or cuda")

@@ -57,10 +57,11 @@ class CommandGate:
 
     async def hover(self) -> bool:
         """Close the gate to the policy and send a zero-velocity setpoint; False if released."""
-        return await self.brake(HOVER)
+        return await self.send_own(HOVER)
 
-    async def brake(self, setpoint: VelocityBodyYawspeed) -> bool:
-        """Close the gate to the policy and send the brake's ``setpoint``; False if released."""
+    async def send_own(self, setpoint: VelocityBodyYawspeed) -> bool:
+        """Close the gate to the policy and send the runtime's own ``setpoint`` (the brake's, the
+        retreat's); False if released."""
         self._policy_open = False
         async with self._lock:
             if self._released:

@@ -467,6 +467,10 @@ class MissionConfig:
     allow_arm_takeoff: bool = False
     takeoff_alt_m: float = 1.5  # m above home, with allow_arm_takeoff
     max_episodes: int = 0  # 0 = fly every time the pilot selects offboard, until stopped
+    # With allow_arm_takeoff: after the goal (the last one), fly back this far along the path flown
+    # (m, horizontal) before landing, clear of the wall or obstacle the goal lies near: PX4's Hold
+    # and Land drift up to ~1.1 m while descending (docs/px4-sitl.md §8).  0 = land where it stopped.
+    land_retreat_m: float = 1.5
 
     def __post_init__(self) -> None:
         _require(self.goal_source in GOAL_SOURCES, "mission.goal_source", self.goal_source, f"one of {', '.join(GOAL_SOURCES)}")
@@ -488,6 +492,7 @@ class MissionConfig:
         _within("mission.episode_timeout_s", self.episode_timeout_s, 0.0, 600.0, "s", "an episode that ends")
         _within("mission.max_episodes", self.max_episodes, 0, 100_000, "", "0 = until stopped")
         _require(0.0 < self.takeoff_alt_m <= 50.0, "mission.takeoff_alt_m", self.takeoff_alt_m, "in (0, 50] m above home")
+        _within("mission.land_retreat_m", self.land_retreat_m, 0.0, 10.0, "m", "0 = land where the vehicle stopped")
         _require(
             isinstance(self.max_episodes, int) and self.max_episodes >= 0,
             "mission.max_episodes",

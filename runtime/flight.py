@@ -48,13 +48,25 @@ from .contract import (
     velocity_flu_to_mavsdk,
 )
 from .contract.constants import GOAL_REACHED_RADIUS_M
+from .contract.frames import world_enu_to_vehicle
 from .log.recorder import Recorder
 from .model import PolicyModel
 from .policy_step import PolicyMemory, StepResult, compute_step
 from .slots import LatestSlot
 from .state import VehicleError, VehicleState
 from .timing import StageTimes
-from .watchdog import TripCause, WatchInputs, Watchdog, brake_ended, brake_record, brake_setpoint
+from .watchdog import (
+    RETREAT_ARRIVED_M,
+    RETREAT_SPEED_M_S,
+    TripCause,
+    WatchInputs,
+    Watchdog,
+    brake_ended,
+    brake_record,
+    brake_setpoint,
+    retreat_path,
+    retreat_velocity_enu,
+)
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +74,7 @@ _NS_PER_MS = 1_000_000
 _NS_PER_S = 1_000_000_000
 STATE_LOG_PERIOD_S = 0.1
 ALIVE_SLEEP_SLICE_S = 0.1  # how often on_alive is called while the loop sleeps on purpose
+RETREAT_TIME_MARGIN_S = 4.0  # a retreat may take twice its length at RETREAT_SPEED_M_S, plus this
 
 
 class VehicleLink(CommandedVehicle, Protocol):
@@ -163,6 +176,7 @@ class FlightLoop:
         self._goal_enu_m = np.zeros(3)
         self._memory = PolicyMemory(model)
         self._step_started_ns = 0
+        self._flown_enu_m: list[np.ndarray] = []  # the estimate at each step of the episode (local ENU m)
         self._background: list[asyncio.Task] = []
         # The result of the last :meth:`fly` that was cancelled (None if it returned).
         self.interrupted: EpisodeResult | None = None
@@ -204,10 +218,26 @@ class FlightLoop:
         except VehicleError as err:
             log.error("safe stop failed (%s): MAVSDK stops re-sending on close, PX4's offboard-loss failsafe follows", err)
 
-    async def brake_then_hold(self) -> dict | None:
+    async def brake_then_hold(self, retreat_m: float = 0.0) -> dict | None:
         """Brake (``runtime.watchdog.brake_setpoint`` at the control rate) until the vehicle has
-        stopped (``runtime.watchdog.brake_ended``), then Hold; returns the brake's record (None if the pilot has the vehicle: nothing sent).
+        stopped (``runtime.watchdog.brake_ended``), then Hold; returns the brake's record (None if
+        the pilot has the vehicle: nothing sent).  With ``retreat_m`` > 0 and the vehicle stopped,
+        :meth:`retreat` and brake again before the Hold (the record's ``retreat``).
         Raises VehicleError if a command fails."""
+        record = await self._brake()
+        if record is None:
+            return None
+        if retreat_m > 0.0 and record["ended"] == "stopped":
+            retreat = await self.retreat(retreat_m)
+            if retreat is None or (record := await self._brake()) is None:
+                return None
+            record["retreat"] = retreat
+        await self.gate.hold()
+        return record
+
+    async def _brake(self) -> dict | None:
+        """The brake until it ends (``runtime.watchdog.brake_ended``): its record, or None once the
+        pilot has the vehicle."""
         t_brake_ns = time.monotonic_ns()
         if not await self.gate.hover():
             return None
@@ -218,12 +248,45 @@ class FlightLoop:
                 return None
             if now_ns - t_sent_ns >= CONTROL_PERIOD_S * _NS_PER_S:
                 t_sent_ns = now_ns
-                await self.gate.brake(brake_setpoint(self.vehicle.state(), now_ns, self.config.watchdog))
+                await self.gate.send_own(brake_setpoint(self.vehicle.state(), now_ns, self.config.watchdog))
             await self._sleep_alive(self.config.watchdog.period_s)
-        now_ns = time.monotonic_ns()
-        record = brake_record(ended, t_brake_ns, now_ns, self.vehicle.state())
+        record = brake_record(ended, t_brake_ns, time.monotonic_ns(), self.vehicle.state())
         log.info("braked: %s", record)
-        await self.gate.hold()
+        return record
+
+    async def retreat(self, distance_m: float) -> dict | None:
+        """Fly back along the last episode's path (the estimates its steps flew from) for
+        ``distance_m`` of horizontal length (``runtime.watchdog.retreat_path``, pursued at
+        ``RETREAT_SPEED_M_S``), at the control rate, heading unchanged.  Blind but on a path just
+        flown; it ends at the path's end ("arrived"), after twice the time it needs plus
+        ``RETREAT_TIME_MARGIN_S`` ("timeout"), or when the estimate goes stale ("stale_telemetry").
+        Returns its record {ended, retreated_m, duration_s}, None once the pilot has the vehicle."""
+        path = retreat_path(np.array(self._flown_enu_m).reshape(-1, 3), distance_m)
+        t0_ns = time.monotonic_ns()
+        limit_ns = t0_ns + int((2.0 * distance_m / RETREAT_SPEED_M_S + RETREAT_TIME_MARGIN_S) * _NS_PER_S)
+        stale_ns = int(self.config.watchdog.telemetry_stale_ms * _NS_PER_MS)
+        start = self.vehicle.state().pos_enu_m.copy()
+        progress_m, ended = 0.0, "arrived"
+        log.info("retreating %.2f m back along the path flown (%d points)", distance_m, len(path))
+        while len(path) > 1:
+            state, now_ns = self.vehicle.state(), time.monotonic_ns()
+            if self.gate.released:
+                return None
+            if now_ns - state.t_telemetry_ns > stale_ns:
+                ended = "stale_telemetry"
+                break
+            if np.linalg.norm(path[-1, :2] - state.pos_enu_m[:2]) < RETREAT_ARRIVED_M:
+                break
+            if now_ns >= limit_ns:
+                ended = "timeout"
+                break
+            vel_enu, progress_m = retreat_velocity_enu(state.pos_enu_m, path, progress_m)
+            vel_vehicle = world_enu_to_vehicle(vel_enu, state.yaw_enu_rad)
+            await self.gate.send_own(velocity_flu_to_mavsdk(np.array([*vel_vehicle, 0.0])))
+            await self._sleep_alive(CONTROL_PERIOD_S)
+        record = {"ended": ended, "retreated_m": round(float(np.linalg.norm(self.vehicle.state().pos_enu_m[:2] - start[:2])), 3),
+                  "duration_s": round((time.monotonic_ns() - t0_ns) / _NS_PER_S, 3)}  # fmt: skip
+        log.info("retreat: %s", record)
         return record
 
     def set_goal(self, goal_enu_m: np.ndarray) -> None:
@@ -241,11 +304,14 @@ class FlightLoop:
 
     # ------------------------------------------------------------------ one episode
 
-    async def fly(self, goal_enu_m: np.ndarray, timeout_s: float) -> EpisodeResult:
-        """Fly the policy from now (offboard active) to ``goal_enu_m`` (local ENU, m)."""
+    async def fly(self, goal_enu_m: np.ndarray, timeout_s: float, retreat_m: float = 0.0) -> EpisodeResult:
+        """Fly the policy from now (offboard active) to ``goal_enu_m`` (local ENU, m).  With
+        ``retreat_m`` > 0 (a dry run about to land), a goal reached is followed by the brake, a
+        retreat of that length back along the path flown (:meth:`retreat`), the brake again, then Hold."""
         self.set_goal(goal_enu_m)
         settle_heap()
-        episode = _Episode(t0_ns=time.monotonic_ns(), timeout_s=timeout_s)
+        episode = _Episode(t0_ns=time.monotonic_ns(), timeout_s=timeout_s, retreat_m=retreat_m)
+        self._flown_enu_m = []
         self.watchdog.start(episode.t0_ns, self.vehicle.state())
         self._on_watchdog_event({"event": "start", "detail": repr(self.config.watchdog), "t_s": 0.0})
         log.info("episode start: goal %s (local ENU m), time limit %.1f s", np.round(self._goal_enu_m, 2), timeout_s)
@@ -295,7 +361,7 @@ class FlightLoop:
         # Goal reached or out of time: brake, then Hold, as the watchdog would (but not a trip).
         self.watchdog.stop()
         try:
-            episode.brake = await self.brake_then_hold()
+            episode.brake = await self.brake_then_hold(episode.retreat_m if episode.outcome == "success" else 0.0)
         except VehicleError as err:
             log.error("hover/Hold at the end of the episode failed: %s", err)
             episode.abort_reason = f"end of episode hover/Hold failed: {err}"
@@ -405,6 +471,7 @@ class FlightLoop:
         state = self.vehicle.state()
         if await self.watchdog.check_telemetry(state, time.monotonic_ns()) is not None:
             return False
+        self._flown_enu_m.append(state.pos_enu_m.copy())  # the retreat's path (fresh: checked above)
         inputs = self._memory.inputs(state, self._goal_enu_m)
         limit_s = self.config.watchdog.step_trip_ms / 1000.0 - (time.monotonic_ns() - t_start) / _NS_PER_S
         loop = asyncio.get_running_loop()
@@ -543,6 +610,7 @@ class _Episode:
     t_end_ns: int | None = None
     timing: StageTimes = field(default_factory=StageTimes)
     brake: dict | None = None
+    retreat_m: float = 0.0  # after a goal reached (FlightLoop.fly)
     ended: asyncio.Future = field(default_factory=lambda: asyncio.get_running_loop().create_future())
 
     def finish(self, outcome: str, reason: str | None, t_ns: int) -> None:

@@ -150,6 +150,76 @@ def brake_setpoint(vehicle: VehicleState, now_ns: int, config: WatchdogConfig) -
     return velocity_flu_to_mavsdk(np.array([setpoint[0], setpoint[1], setpoint[2], 0.0]))
 
 
+# Landing clear of what lay ahead (docs/px4-sitl.md §8): after the goal a dry run flies back along
+# the path it came by (free: it was just flown) before its landing, slowly, at the height flown.
+RETREAT_SPEED_M_S = 0.5  # horizontal, along the path
+RETREAT_LOOKAHEAD_M = 0.5  # the point pursued lies this far along the path beyond the nearest one
+RETREAT_ARRIVED_M = 0.15  # horizontal distance to the path's end that counts as arrived
+RETREAT_SLOWDOWN_PER_S = 1.0  # speed = this x the distance left, near the end (no overshoot)
+RETREAT_CLIMB_GAIN_PER_S = 1.0  # vertical speed per metre of height error
+RETREAT_CLIMB_MAX_M_S = 0.3
+
+
+def retreat_path(flown_enu_m: np.ndarray, distance_m: float) -> np.ndarray:
+    """The flown path (positions in order, world ENU m, shape (N, 3)) walked backwards from its end
+    for ``distance_m`` of horizontal length: newest point first, the last one interpolated where
+    the length is reached (the whole path reversed if it is shorter)."""
+    points = np.asarray(flown_enu_m, dtype=np.float64)[::-1]
+    if len(points) < 2 or distance_m <= 0.0:
+        return points[:1].copy()
+    steps_m = np.linalg.norm(np.diff(points[:, :2], axis=0), axis=1)
+    walked_m = np.concatenate([[0.0], np.cumsum(steps_m)])
+    if walked_m[-1] <= distance_m:
+        return points.copy()
+    i = int(np.searchsorted(walked_m, distance_m))  # walked_m[i - 1] < distance_m <= walked_m[i]
+    share = (distance_m - walked_m[i - 1]) / steps_m[i - 1]
+    end = points[i - 1] + share * (points[i] - points[i - 1])
+    return np.vstack([points[:i], end])
+
+
+def retreat_velocity_enu(pos_enu_m: np.ndarray, path_enu_m: np.ndarray, progress_m: float) -> tuple[np.ndarray, float]:
+    """Pure pursuit along ``path_enu_m`` (from :func:`retreat_path`): the velocity to command (world
+    ENU m/s) and the progress along the path (m of horizontal length; it never goes back).
+
+    The pursued point lies ``RETREAT_LOOKAHEAD_M`` beyond the path point nearest the vehicle (searched
+    from ``progress_m`` on); the horizontal speed is ``RETREAT_SPEED_M_S``, less near the end; the
+    vertical speed holds the pursued point's height."""
+    path = np.asarray(path_enu_m, dtype=np.float64)
+    pos = np.asarray(pos_enu_m, dtype=np.float64)
+    steps_m = np.linalg.norm(np.diff(path[:, :2], axis=0), axis=1)
+    at_m = np.concatenate([[0.0], np.cumsum(steps_m)])
+    length_m = float(at_m[-1])
+    nearest_m, nearest_d = progress_m, math.inf
+    for k, step_m in enumerate(steps_m):  # the nearest point of each segment not behind progress_m
+        if step_m <= 0.0 or at_m[k + 1] < progress_m:
+            continue
+        a, b = path[k, :2], path[k + 1, :2]
+        share = float(np.clip(np.dot(pos[:2] - a, b - a) / step_m**2, 0.0, 1.0))
+        along_m = max(float(at_m[k] + share * step_m), progress_m)
+        d = float(np.linalg.norm(_path_point(path, at_m, along_m)[:2] - pos[:2]))
+        if d < nearest_d:
+            nearest_m, nearest_d = along_m, d
+    target = _path_point(path, at_m, min(nearest_m + RETREAT_LOOKAHEAD_M, length_m))
+    end = path[-1]
+    to_target = target[:2] - pos[:2]
+    left_m = float(np.linalg.norm(end[:2] - pos[:2]))
+    speed = min(RETREAT_SPEED_M_S, RETREAT_SLOWDOWN_PER_S * left_m)
+    norm = float(np.linalg.norm(to_target))
+    horizontal = to_target * (speed / norm) if norm > 1e-6 else np.zeros(2)
+    climb = float(np.clip(RETREAT_CLIMB_GAIN_PER_S * (target[2] - pos[2]), -RETREAT_CLIMB_MAX_M_S, RETREAT_CLIMB_MAX_M_S))
+    return np.array([horizontal[0], horizontal[1], climb]), nearest_m
+
+
+def _path_point(path: np.ndarray, at_m: np.ndarray, along_m: float) -> np.ndarray:
+    """The point ``along_m`` metres (horizontal length) along the polyline ``path``."""
+    if len(path) == 1 or along_m <= 0.0:
+        return path[0]
+    k = min(int(np.searchsorted(at_m, along_m)), len(path) - 1)
+    span = at_m[k] - at_m[k - 1]
+    share = 1.0 if span <= 0.0 else (along_m - at_m[k - 1]) / span
+    return path[k - 1] + min(share, 1.0) * (path[k] - path[k - 1])
+
+
 def measured_speed_m_s(vehicle: VehicleState) -> float:
     """|velocity| (m/s, world ENU) as telemetry last reported it; NaN before any."""
     return float(np.linalg.norm(vehicle.vel_enu_m_s))
@@ -502,7 +572,7 @@ class Watchdog:
         logged, MAVSDK keeps re-sending the last one."""
         self._t_brake_sent_ns = now_ns
         try:
-            await self.gate.brake(brake_setpoint(v, now_ns, self.config))
+            await self.gate.send_own(brake_setpoint(v, now_ns, self.config))
         except VehicleError as err:
             log.error("watchdog: brake setpoint failed (%s); Hold follows when braked or at brake_timeout_s", err)
 

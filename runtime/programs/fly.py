@@ -292,7 +292,9 @@ class FieldProgram:
         try:
             await script.dry_run(
                 self.config.mission.takeoff_alt_m,
-                lambda state: self._episode(loop, model, episode, state, recorder),
+                # the last episode lands after it: a goal reached is followed by the retreat
+                lambda state: self._episode(loop, model, episode, state, recorder,
+                                            self.config.mission.land_retreat_m if episode == episodes else 0.0),
                 before_offboard=before_offboard,
                 on_refused=refused,
                 episodes=episodes,
@@ -330,9 +332,11 @@ class FieldProgram:
             await asyncio.sleep(PILOT_POLL_S)
 
     async def _episode(
-        self, loop: FlightLoop, model: PolicyModel, episode: int, state: VehicleState, recorder: Recorder | None
-    ) -> EpisodeResult:
-        """One offboard episode toward the goal (relative to home), recorded to its own log."""
+        self, loop: FlightLoop, model: PolicyModel, episode: int, state: VehicleState, recorder: Recorder | None,
+        retreat_m: float = 0.0,
+    ) -> EpisodeResult:  # fmt: skip
+        """One offboard episode toward the goal (relative to home), recorded to its own log;
+        ``retreat_m``: ``FlightLoop.fly``'s retreat after a goal reached (a dry run's landing next)."""
         assert state.home_enu_m is not None
         goal_enu_m = state.home_enu_m + self._goal_rel_home_enu_m(episode)
         loop.recorder = recorder
@@ -340,7 +344,7 @@ class FieldProgram:
         item = "" if self.waypoints is None else f" (mission item {self.waypoints[episode - 1].seq})"
         self._status(f"episode {episode}: flying to the goal {np.round(goal_enu_m - state.home_enu_m, 2).tolist()} m from home{item}")
         try:
-            result = await loop.fly(goal_enu_m, self.config.mission.episode_timeout_s)
+            result = await loop.fly(goal_enu_m, self.config.mission.episode_timeout_s, retreat_m)
             self.flight.enter(Phase.HOLDING)
         except asyncio.CancelledError:
             # A stop signal: the safe stop now, while this episode's log is still open to record it.

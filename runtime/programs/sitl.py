@@ -186,12 +186,14 @@ async def _fly_with_faults(
     loop: FlightLoop, policy: FaultyPolicy | None, injections: list[Injection], goal_enu_m: np.ndarray, timeout_s: float,
     summary: dict,
 ) -> EpisodeResult:  # fmt: skip
-    """``loop.fly`` with the runtime's injected faults armed (none: just ``loop.fly``)."""
+    """``loop.fly`` with the runtime's injected faults armed (none: just ``loop.fly``); a goal reached
+    is followed by the dry run's retreat (``mission.land_retreat_m``) before the landing."""
+    retreat_m = loop.config.mission.land_retreat_m
     settle_heap()  # here, not only in loop.fly: the faults' clock and the episode's start together
     t0_ns = time.monotonic_ns()
     summary["t_episode_start_s"] = t0_ns / 1e9
     if not injections:
-        return await loop.fly(goal_enu_m, timeout_s)
+        return await loop.fly(goal_enu_m, timeout_s, retreat_m)
     injected: dict[FaultKind, float] = {}
     if policy is not None:
         policy.start(t0_ns)
@@ -204,7 +206,7 @@ async def _fly_with_faults(
         fence_task = asyncio.create_task(shrink_geofence_at(loop.watchdog, fence.at_s, t0_ns, loop.vehicle.state))
         fence_task.add_done_callback(log_task_failure)
     try:
-        return await loop.fly(goal_enu_m, timeout_s)
+        return await loop.fly(goal_enu_m, timeout_s, retreat_m)
     finally:
         if fence_task is not None:
             if fence_task.done() and not fence_task.cancelled() and fence_task.exception() is None:

@@ -5,7 +5,8 @@ The programs say which :class:`Phase` they are in *before* each step (``FlightPh
 nothing resets it in cleanup code: the decision reads the phase the signal interrupted, plus the
 flight mode telemetry reports (offboard is left safely whoever entered it).
 
-- in offboard, entering it or in an episode: hover setpoint, then Hold at once (``FlightLoop.safe_stop``);
+- in offboard, entering it or in an episode (its brake and retreat after the goal included): hover
+  setpoint, then Hold at once (``FlightLoop.safe_stop``);
 - taking off: Hold where the vehicle is (the climb stops);
 - arming: disarm if armed and still on the ground;
 - landing: nothing — the autopilot's landing is the safe state and goes on;

@@ -276,3 +276,18 @@ def test_evaluate_policy_runs_the_field_condition_and_records_its_settings(tmp_p
     assert field["state_estimate"]["velocity_noise_m_s"] == 0.05 and field["latency_range_s"] == [0.02, 0.08]
     assert written["stereo_sensor"]["field"]["projector_on"]
     assert written["config"]["episode_duration_s"] == 0.4
+
+
+def test_px4_condition_and_dagger_px4_vehicle_fly_pxs_response_with_the_trained_camera(encoder):
+    env = table2_env(encoder, level=2, condition="px4", num_envs=2, device="cpu", seed=1)
+    cfg = env.config
+    assert cfg.corruption == "none" and cfg.gray_camera is None and cfg.action_limits is None
+    assert cfg.dynamics == PX4 and cfg.dynamics_randomization is not None and cfg.state_estimate is not None
+    assert cfg.latency_range_s[1] > 0 and cfg.max_steps == NavEnvConfig().max_steps  # the contract's speeds, its 10 s
+    student = DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", num_envs=2, vehicle="px4")
+    student.validate()
+    env_config = student.env_config()
+    assert env_config.dynamics == PX4 and env_config.corruption == "train" and env_config.gray_camera is None
+    for wrong, match in (({"vehicle": "px5"}, "vehicle"), ({"vehicle": "px4", "field_conditions": True}, "one of them")):
+        with pytest.raises(ValueError, match=match):
+            DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", **wrong).validate()

@@ -39,7 +39,7 @@ from ..distributed import DistInfo, log_weights_digest, wall_budget_spent
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .env import CRASH, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder
-from .field import field_env_overrides
+from .field import field_env_overrides, px4_vehicle_env_overrides
 from .network import CHECKPOINT_KIND, STUDENT, TEACHER, ActorCritic, PolicyConfig, load_policy
 from .train import init_from_policy
 
@@ -72,6 +72,10 @@ class DaggerConfig:
     # simulated D455's stereo depth (in place of ``corruption``) and the gray camera, latency,
     # PX4's randomized response, EKF2-like estimates and the field config's speed caps act.
     field_conditions: bool = False
+    # The vehicle the student flies: "ideal" (the batched sim's: commands followed at once) or
+    # "px4" (PX4 v1.16's identified response, latency and EKF2-like estimates alone, Table II's
+    # ``px4``: what `cmnav sitl --autopilot` flies); the field includes the latter.
+    vehicle: str = "ideal"
     min_level: int = 0
     max_level: int = 20
     # Extra weight of the steps whose teacher sees a surface nearer than near_m (m) in the
@@ -93,6 +97,8 @@ class DaggerConfig:
     def env_config(self) -> NavEnvConfig:
         curriculum = CurriculumConfig(start_level=self.min_level, min_level=self.min_level, max_level=self.max_level)
         field_options = {"corruption": "stereo", **field_env_overrides()} if self.field_conditions else {}
+        if self.vehicle == "px4":
+            field_options |= px4_vehicle_env_overrides()
         return replace(NavEnvConfig(num_envs=self.num_envs, corruption=self.corruption, curriculum=curriculum,
                                     corrupted_env_fraction=self.corrupted_env_fraction, level_sampling="uniform",
                                     projector_off_episode_fraction=self.projector_off_episode_fraction),
@@ -101,6 +107,10 @@ class DaggerConfig:
     def validate(self) -> None:
         if self.corruption not in ("train", "none"):
             raise ValueError(f"corruption={self.corruption!r} must be 'train' or 'none' (the depth-only baseline)")
+        if self.vehicle not in ("ideal", "px4"):
+            raise ValueError(f"vehicle={self.vehicle!r} must be 'ideal' or 'px4'")
+        if self.vehicle == "px4" and self.field_conditions:
+            raise ValueError("vehicle='px4' with the field: the field flies PX4's response already; give one of them")
         if not 0.0 <= self.beta_end <= self.beta_start <= 1.0:
             raise ValueError(f"need 0 <= beta_end ({self.beta_end}) <= beta_start ({self.beta_start}) <= 1")
         for key in ("env_steps", "num_envs", "rollout_steps", "buffer_rollouts", "epochs", "minibatches", "checkpoint_every"):

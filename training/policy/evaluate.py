@@ -39,7 +39,7 @@ from ..progress import Progress
 from ..stats import wilson_interval
 from .env import (CRASH, OUTCOMES, STEREO_MODES, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder,
                   parity_frames)  # fmt: skip
-from .field import field_description, field_env_overrides
+from .field import field_description, field_env_overrides, px4_vehicle_env_overrides
 from .network import TEACHER, check_trained_on, load_policy
 
 log = logging.getLogger(__name__)
@@ -53,9 +53,11 @@ CONDITIONS: dict[str, dict] = {
     "patches-1-50px": {"corruption": "episode", "corruption_scheme": evaluation_scheme(0.5)},
     "patches-100px": {"corruption": "episode", "corruption_scheme": evaluation_scheme(0.5, (100, 100))},
     "field": {"corruption": "stereo"},  # and the rest of the field: condition_env_overrides
+    "px4": {"corruption": "none"},  # and PX4's response (training.policy.field.px4_vehicle_env_overrides)
 }
-# The conditions that fly in the field (training.policy.field) besides their depth.
+# The conditions that fly in the field (training.policy.field) besides their depth; on PX4's response alone.
 FIELD_CONDITIONS = ("field",)
+PX4_VEHICLE_CONDITIONS = ("px4",)
 # Room sets: models are chosen on validation rooms; published tables use test rooms no choice saw.
 ROOMS = {"validation": 0, "test": 1}
 
@@ -110,6 +112,8 @@ def condition_env_overrides(condition: str) -> dict:
     overrides = dict(CONDITIONS[condition])
     if condition in FIELD_CONDITIONS:
         overrides |= field_env_overrides()
+    if condition in PX4_VEHICLE_CONDITIONS:
+        overrides |= px4_vehicle_env_overrides()
     return overrides
 
 
@@ -223,7 +227,7 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
         "fast_path": {"encoder": getattr(getattr(encoder, "path", None), "name", "fp32"), "bf16_action_error": action_parity,
                       "precision_requested": config.precision},
         "stereo_sensor": stereo,
-        "field": {c: field_description(condition_env_overrides(c)) for c in conditions if c in FIELD_CONDITIONS},
+        "field": {c: field_description(condition_env_overrides(c)) for c in conditions if c in FIELD_CONDITIONS + PX4_VEHICLE_CONDITIONS},
         "policy_env_steps": card.get("step"), "config": asdict(replace(config, out_dir=str(out))), "cells": cells,
     }  # fmt: skip
     (out / "table2.json").write_text(json.dumps(result, indent=2))

@@ -67,6 +67,19 @@ def field_action_limits(path: str | Path = FIELD_CONFIG_TOML) -> ActionLimits:
         raise FieldConfigError(f"{path}: [policy.limits] {err}") from err
 
 
+def px4_vehicle_env_overrides() -> dict:
+    """The field's vehicle alone: image-to-command latency, PX4 v1.16's identified response and
+    command delays (randomized per episode) and EKF2-like estimates, at the contract's speeds and
+    with the trained camera (what `cmnav sitl --autopilot` flies on PX4: rendered depth, no caps).
+    Table II's ``px4`` condition and DAgger's ``--vehicle px4``."""
+    return {
+        "latency_range_s": IMAGE_TO_COMMAND_LATENCY_S,
+        "dynamics": replace(PX4_SIH_V1_16, ground_contact=False),
+        "dynamics_randomization": DynamicsRandomization(),
+        "state_estimate": StateEstimateConfig(),
+    }
+
+
 def field_env_overrides(limits: ActionLimits | None = None) -> dict:
     """The NavEnvConfig fields of the field (see the module doc), besides its depth
     (``corruption="stereo"``, which Table II's condition and DAgger set themselves).  ``limits``:
@@ -76,10 +89,7 @@ def field_env_overrides(limits: ActionLimits | None = None) -> dict:
         raise FieldConfigError("a field config with max_speed_m_s = 0 cannot fly to a goal: give a positive speed cap")
     return {
         "gray_camera": GrayCameraConfig(),
-        "latency_range_s": IMAGE_TO_COMMAND_LATENCY_S,
-        "dynamics": replace(PX4_SIH_V1_16, ground_contact=False),
-        "dynamics_randomization": DynamicsRandomization(),
-        "state_estimate": StateEstimateConfig(),
+        **px4_vehicle_env_overrides(),
         "action_limits": limits,
         "episode_duration_s": EPISODE_DURATION_S * MAX_SPEED_M_S / min(limits.max_speed_m_s, MAX_SPEED_M_S),
     }

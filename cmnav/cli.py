@@ -10,6 +10,9 @@ import logging
 import sys
 
 log = logging.getLogger("cmnav")
+# sim.sitl.camera_feed.DEPTH_MODES, spelled here so that building the parser imports no torch
+# (tests/cmnav/test_cli_args.py holds them equal).
+SITL_DEPTH_MODES = ("none", "projector-off", "stereo", "stereo-projector-off")
 
 
 def _cmd_sitl(args: argparse.Namespace) -> int:
@@ -409,9 +412,10 @@ def build_parser() -> argparse.ArgumentParser:
     sitl.add_argument("--timeout", type=float, default=60.0, help="flight time limit in offboard, seconds (default 60)")
     sitl.add_argument("--out", default="runs/sitl", help="directory for the log, plot and summaries (default runs/sitl)")
     sitl.add_argument("--json", action="store_true", help="print the summary as one JSON object on the last line")
-    sitl.add_argument("--degrade", default="none", choices=["none", "projector-off"],
-                      help="depth degradation of the SITL camera (projector-off: a D455 without its IR projector, "
-                      "about a quarter of the depth lost)")  # fmt: skip
+    sitl.add_argument("--degrade", default="none", choices=SITL_DEPTH_MODES,
+                      help="depth of the SITL camera: rendered (none), with a D455's losses without its IR projector "
+                      "(projector-off, about a quarter lost), or the simulated D455's stereo depth matched from rendered "
+                      "IR images, projector on or off (stereo, stereo-projector-off; ~40 ms a frame of one core)")  # fmt: skip
     sitl.add_argument(
         "--inject", action="append", default=[], metavar="KIND@SECONDS",
         help="inject a fault SECONDS after offboard start (repeatable): camera-stall, camera-garbage, "

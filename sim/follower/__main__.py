@@ -9,7 +9,8 @@ from pathlib import Path
 
 from runtime.faults.catalogue import CAMERA_FAULTS, FaultSite, parse_injection
 from sim.sitl.camera_server import CameraPortError
-from sim.sitl.vehicle import DEGRADATIONS, start_world_process
+from sim.sitl.camera_feed import DEPTH_MODES
+from sim.sitl.vehicle import start_world_process
 
 from .follower import FollowerConfig, FollowerNotReadyError, WorldFollower
 from .pose_link import AutopilotLinkError
@@ -36,7 +37,7 @@ def parse_args(argv: list[str] | None = None) -> FollowerConfig:
     parser.add_argument("--status-json", type=Path, help="keep the autopilot's mode log here, rewritten at every change")
     parser.add_argument("--camera-hz", type=float, default=FollowerConfig.camera_hz,
                         help=f"camera frame rate (default {FollowerConfig.camera_hz:g})")
-    parser.add_argument("--degrade", default=FollowerConfig.degrade, choices=sorted(DEGRADATIONS),
+    parser.add_argument("--degrade", default=FollowerConfig.degrade, choices=DEPTH_MODES,
                         help="depth degradation of the served frames")
     parser.add_argument("--timeout-s", type=float, default=FollowerConfig.timeout_s,
                         help=f"offboard time limit the judge applies (s, default {FollowerConfig.timeout_s:g})")

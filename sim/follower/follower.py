@@ -37,12 +37,11 @@ from runtime.contract.frames import euler_from_quat, ned_to_enu, quat_ned_frd_to
 from runtime.faults.catalogue import Injection
 from sim.camera import CameraModel
 from sim.sitl.airframe import LANDING_GEAR_HEIGHT_M
-from sim.sitl.camera_feed import CameraFeed
+from sim.sitl.camera_feed import DEPTH_MODES, CameraFeed
 from sim.sitl.camera_server import FrameServer
 from sim.sitl.faults import VehicleFaults
 from sim.sitl.kinematics import Kinematics
 from sim.sitl.records import Trace, episode_record, write_json_atomic
-from sim.sitl.vehicle import DEGRADATIONS
 from sim.world import make_worlds
 
 from .faults import check_follower_injections
@@ -91,8 +90,8 @@ class FollowerConfig:
     def validate(self) -> None:
         """Raise ValueError naming the bad option (an InjectionError for a fault it cannot inject)."""
         check_follower_injections(self.injections)
-        if self.degrade not in DEGRADATIONS:
-            raise ValueError(f"--degrade {self.degrade!r} must be one of {sorted(DEGRADATIONS)}")
+        if self.degrade not in DEPTH_MODES:
+            raise ValueError(f"--degrade {self.degrade!r} must be one of {', '.join(DEPTH_MODES)}")
         if self.level < 0:
             raise ValueError(f"--level {self.level} must be >= 0")
         if not 0.0 < self.camera_hz <= 60.0:
@@ -215,7 +214,7 @@ class WorldFollower:
 
     def _start_camera(self) -> None:
         self._feed = CameraFeed(self._world, self._camera, lambda: self._kin, self._publish, self._config.camera_hz,
-                                DEGRADATIONS[self._config.degrade], seed=self._config.seed)  # fmt: skip
+                                self._config.degrade, seed=self._config.seed)  # fmt: skip
         self._feed.start()
         self._server.start()
 

@@ -10,6 +10,7 @@ from pathlib import Path
 from runtime.faults.catalogue import FaultSite, parse_injection
 
 from .camera_server import CameraPortError
+from .camera_feed import DEPTH_MODES
 from .vehicle import DYNAMICS, SitlConfig, SitlVehicle, start_world_process
 
 log = logging.getLogger("sim.sitl")
@@ -34,8 +35,9 @@ def parse_args(argv: list[str] | None = None) -> SitlConfig:
                         help="inject a fault SECONDS after this vehicle first enters OFFBOARD (repeatable; kinds: "
                         "camera-stall, camera-garbage, camera-blackout, telemetry-loss, pilot-takeover, offboard-refused@0, "
                         "vehicle-stuck)")  # fmt: skip
-    parser.add_argument("--degrade", default="none", choices=["none", "projector-off"],
-                        help="depth degradation of the served frames (projector-off: a D455 without its IR projector)")
+    parser.add_argument("--degrade", default="none", choices=DEPTH_MODES,
+                        help="depth of the served frames: rendered (none), with a D455's losses without its projector "
+                        "(projector-off), or the simulated D455's stereo depth, projector on or off (sim.sensor)")  # fmt: skip
     parser.add_argument("--status-json", type=Path, help="keep the mode log here, rewritten at every mode change")
     parser.add_argument("--stand-in", action="store_true",
                         help="stand in for an external autopilot (PX4 SIH) in tests of the world follower: no camera "

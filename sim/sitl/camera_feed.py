@@ -5,10 +5,17 @@ the same world and camera can follow our own dynamics or a real PX4 SIH's pose. 
 frames go out: the camera is held inside the room (``sim.camera.clamp_into_room``: a pose from an
 autopilot that knows no room can sit under the floor), and a frame whose depth is still negative,
 infinite or NaN is withheld and the reason logged, never served.
+
+Its depth (``DEPTH_MODES``): the rendered depth map ("none"), the same with a D455's losses
+without its projector drawn on it ("projector-off", ``sim.degradation``), or the simulated D455's
+own stereo depth ("stereo", "stereo-projector-off": ``sim.sensor``, matched from rendered IR images
+at 424 x 240 and brought to the camera's grid by the RealSense decimation filter's median, as the
+runtime needs depth and gray on one grid).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -22,11 +29,15 @@ from runtime.contract.images import invalid_depth_fraction
 from sim.camera import CameraModel, camera_pose, clamp_into_room
 from sim.degradation import ProjectorOffModel
 from sim.render import render
+from sim.sensor import D455, StereoDepthSensor, decimate_depth
 from sim.world import WorldBatch
 
 from .kinematics import Kinematics
 
 log = logging.getLogger(__name__)
+
+# The served frames' depth, by name (--degrade of sim.sitl, the follower and cmnav sitl).
+DEPTH_MODES = ("none", "projector-off", "stereo", "stereo-projector-off")
 
 
 class CameraFeed:
@@ -40,11 +51,13 @@ class CameraFeed:
         pose_source: Callable[[], Kinematics],
         publish: Callable[[Frame], None],
         rate_hz: float,
-        degradation: ProjectorOffModel | None = None,
+        depth_mode: str = "none",
         seed: int = 0,
     ) -> None:
-        """``degradation``: depth loss applied to every frame (None: clean depth), drawn from a
-        generator seeded with ``seed`` so a seed replays the same losses."""
+        """``depth_mode``: one of ``DEPTH_MODES``; its noise and losses are drawn from a generator
+        seeded with ``seed`` so a seed replays the same frames."""
+        if depth_mode not in DEPTH_MODES:
+            raise ValueError(f"depth mode {depth_mode!r} must be one of {', '.join(DEPTH_MODES)}")
         if world.batch_size != 1:
             raise ValueError(f"the camera feed renders one world, got a batch of {world.batch_size}")
         if not rate_hz > 0.0:
@@ -55,7 +68,15 @@ class CameraFeed:
         self._publish = publish
         self._period_s = 1.0 / rate_hz
         self._seq = 0
-        self._degradation = degradation
+        self._projector_off = ProjectorOffModel() if depth_mode == "projector-off" else None
+        self._stereo = None
+        if depth_mode.startswith("stereo"):
+            self._stereo = StereoDepthSensor(dataclasses.replace(D455, projector_on=depth_mode == "stereo"), threads=1)
+            self._decimation = self._stereo.camera.width_px // camera.width_px
+            if self._decimation * camera.width_px != self._stereo.camera.width_px or \
+                    self._decimation * camera.height_px != self._stereo.camera.height_px:
+                raise ValueError(f"stereo depth {self._stereo.camera.width_px}x{self._stereo.camera.height_px} px is not a "
+                                 f"whole multiple of the camera's {camera.width_px}x{camera.height_px} px")  # fmt: skip
         self._generator = torch.Generator().manual_seed(seed)
         self.skipped_deadlines = 0
         self.withheld_unphysical = 0  # frames never served: depth no sensor reports
@@ -72,8 +93,12 @@ class CameraFeed:
         with torch.no_grad():
             out = render(self._world, cam_pos, cam_quat, self._camera)
         depth = out.depth_m
-        if self._degradation is not None:
-            depth, _ = self._degradation.apply(depth, out.gray_u8, self._camera.fx_px, self._generator)
+        if self._projector_off is not None:
+            depth, _ = self._projector_off.apply(depth, out.gray_u8, self._camera.fx_px, self._generator)
+        elif self._stereo is not None:
+            with torch.no_grad():
+                matched = self._stereo.measure(self._world, cam_pos, cam_quat, self._generator).depth_m
+            depth = decimate_depth(matched, self._decimation)
         depth_m = np.ascontiguousarray(depth[0].numpy(), dtype=np.float32)
         gray_u8 = np.ascontiguousarray(out.gray_u8[0].numpy(), dtype=np.uint8)
         frame = Frame(

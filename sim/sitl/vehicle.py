@@ -25,14 +25,13 @@ import torch
 from runtime.camera.frame import Frame
 from runtime.faults.catalogue import Injection
 from sim.camera import CameraModel
-from sim.degradation import ProjectorOffModel
 from sim.dynamics import PX4_SIH_V1_16, DynamicsParams
 from sim.episode_args import check_level_seed
 from sim.world import make_worlds
 
 from .airframe import Airframe
 from .autopilot import Autopilot
-from .camera_feed import CameraFeed
+from .camera_feed import DEPTH_MODES, CameraFeed
 from .camera_server import FrameServer
 from .commander import Commander
 from .faults import VehicleFaults
@@ -48,8 +47,6 @@ from .telemetry import Telemetry
 
 log = logging.getLogger(__name__)
 
-# Depth degradation of the served frames: the D455 with its projector off, or none.
-DEGRADATIONS: dict[str, ProjectorOffModel | None] = {"none": None, "projector-off": ProjectorOffModel()}
 
 MAX_LAG_S = 0.25
 # What the velocity controller gets while the vehicle-stuck fault acts (sim.sitl.faults).
@@ -76,7 +73,7 @@ class SitlConfig:
     camera_hz: float = 15.0
     injections: tuple[Injection, ...] = ()
     status_json: Path | None = None
-    degrade: str = "none"  # one of DEGRADATIONS
+    degrade: str = "none"  # the served depth: one of sim.sitl.camera_feed.DEPTH_MODES
     # A stand-in for an external autopilot (PX4 SIH) in tests of the world follower: no camera
     # server, no room (walls, ceiling, obstacles) to hit, only the floor.
     stand_in: bool = False
@@ -94,8 +91,8 @@ class SitlConfig:
 
     def validate(self) -> None:
         """Raise ValueError naming the bad option."""
-        if self.degrade not in DEGRADATIONS:
-            raise ValueError(f"--degrade {self.degrade!r} must be one of {sorted(DEGRADATIONS)}")
+        if self.degrade not in DEPTH_MODES:
+            raise ValueError(f"--degrade {self.degrade!r} must be one of {', '.join(DEPTH_MODES)}")
         if self.dynamics not in DYNAMICS:
             raise ValueError(f"--dynamics {self.dynamics!r} must be one of {sorted(DYNAMICS)}")
         if not 0.0 <= self.boot_time_scale <= 1.0:
@@ -160,7 +157,7 @@ class SitlVehicle:
         if self._server is not None:
             publish = self._publish_faulty if self._faults.camera_faults else self._server.publish
             self._feed = CameraFeed(self._world, CameraModel(), lambda: self._kin, publish, config.camera_hz,
-                                    DEGRADATIONS[config.degrade], seed=config.seed)  # fmt: skip
+                                    config.degrade, seed=config.seed)  # fmt: skip
         self.overruns = 0
 
     def run(self, stop: threading.Event) -> None:

@@ -56,3 +56,10 @@ def test_export_output_under_a_file_is_refused(tmp_path):
     assert proc.returncode == 2 and f"{blocker} is a file, not a directory" in proc.stderr and "Traceback" not in proc.stderr
     proc = _cmnav("export", "--encoder", "e", "--policy", "p", "-o", str(tmp_path))
     assert proc.returncode == 2 and "is a directory" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_the_sitl_depth_modes_are_the_camera_feeds():
+    from cmnav.cli import SITL_DEPTH_MODES
+    from sim.sitl.camera_feed import DEPTH_MODES
+
+    assert SITL_DEPTH_MODES == DEPTH_MODES

@@ -82,3 +82,25 @@ def test_an_unphysical_frame_is_withheld_not_published(world, monkeypatch):
     monkeypatch.setattr(feed, "render_frame", broken)
     feed._render_and_publish()
     assert len(published) == 1 and feed.withheld_unphysical == 1
+
+
+def test_the_stereo_camera_serves_matched_depth_on_the_cameras_grid(world):
+    """--degrade stereo: the simulated D455's depth (sim.sensor), decimated to the served grid.
+    Near the rendered depth where both see a surface within 4 m; with the projector off, more
+    of it lost (the texture check)."""
+    pose = _kin((1.0, float(_room(world)[1]) / 2, 1.5))
+    clean = CameraFeed(world, CameraModel(), lambda: None, lambda frame: None, 15.0).render_frame(pose)
+    served = {}
+    for mode in ("stereo", "stereo-projector-off"):
+        served[mode] = CameraFeed(world, CameraModel(), lambda: None, lambda frame: None, 15.0, depth_mode=mode, seed=3).render_frame(pose)
+        depth = served[mode].depth_m
+        assert depth.shape == clean.depth_m.shape == served[mode].gray_u8.shape and unphysical_depth(depth) is None
+    on, off = served["stereo"].depth_m, served["stereo-projector-off"].depth_m
+    near = (clean.depth_m > 0.6) & (clean.depth_m < 4.0) & (on > 0.0)
+    assert near.mean() > 0.3
+    relative = np.abs(on[near] - clean.depth_m[near]) / clean.depth_m[near]
+    assert np.median(relative) < 0.02
+    assert (off == 0.0).mean() > (on == 0.0).mean()
+    assert not np.array_equal(on, clean.depth_m)  # matched, not the rendered map
+    with pytest.raises(ValueError, match="depth mode"):
+        CameraFeed(world, CameraModel(), lambda: None, lambda frame: None, 15.0, depth_mode="lidar")

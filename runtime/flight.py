@@ -97,7 +97,7 @@ class EpisodeResult:
     step_ms: dict
     stage_ms: dict
     watchdog_trips: list[dict] = field(default_factory=list)
-    final_distance_m: float = float("nan")
+    final_distance_m: float = float("nan")  # to the goal at the last step (before the brake and any retreat)
     frames_rejected: int = 0  # unfit camera frames since FlightLoop.start (runtime.camera.validate)
     tracking_error_peak_m_s: float = 0.0  # the largest tracking error sustained a whole window (runtime.tracking)
     # How the brake before Hold ended ({ended: stopped | brake_timeout, duration_s, speed_at_hold_m_s};
@@ -567,8 +567,10 @@ class FlightLoop:
             self.recorder.log_command(time.monotonic_ns(), None, mavsdk_to_velocity_flu(HOVER), HOVER, source, True)
 
     def _result(self, episode: "_Episode") -> EpisodeResult:
-        state = self.vehicle.state()
-        final_distance_m = float(np.linalg.norm(self._goal_enu_m - state.pos_enu_m))
+        # At the episode's end (its last step), before the brake and any retreat; the estimate now if no step ran.
+        final_distance_m = episode.last_distance_m
+        if not np.isfinite(final_distance_m):
+            final_distance_m = float(np.linalg.norm(self._goal_enu_m - self.vehicle.state().pos_enu_m))
         stage_ms = episode.timing.summary()
         return EpisodeResult(
             outcome=episode.outcome or "aborted",

@@ -155,7 +155,7 @@ def brake_setpoint(vehicle: VehicleState, now_ns: int, config: WatchdogConfig) -
 RETREAT_SPEED_M_S = 0.5  # horizontal, along the path
 RETREAT_LOOKAHEAD_M = 0.5  # the point pursued lies this far along the path beyond the nearest one
 RETREAT_ARRIVED_M = 0.15  # horizontal distance to the path's end that counts as arrived
-RETREAT_SLOWDOWN_PER_S = 1.0  # speed = this x the distance left, near the end (no overshoot)
+RETREAT_SLOWDOWN_PER_S = 2.0  # speed = this x the distance left, near the end (no overshoot)
 RETREAT_CLIMB_GAIN_PER_S = 1.0  # vertical speed per metre of height error
 RETREAT_CLIMB_MAX_M_S = 0.3
 

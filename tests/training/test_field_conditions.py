@@ -291,3 +291,16 @@ def test_px4_condition_and_dagger_px4_vehicle_fly_pxs_response_with_the_trained_
     for wrong, match in (({"vehicle": "px5"}, "vehicle"), ({"vehicle": "px4", "field_conditions": True}, "one of them")):
         with pytest.raises(ValueError, match=match):
             DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", **wrong).validate()
+
+
+def test_field_training_on_the_parametric_stereo_uses_it_and_costs_less(encoder):
+    student = DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", num_envs=2, field_conditions=True, field_depth="approx")
+    student.validate()
+    env = NavEnv(replace(student.env_config(), num_envs=4), encoder, seed=3)
+    assert env.config.corruption == "stereo-approx" and env.stereo_sensor is None and env.stereo_approx.projector_on
+    env.reset()
+    for _ in range(3):
+        env.step(torch.zeros(4, 3))
+    assert env.stage_seconds["stereo"] > 0.0  # the stand-in ran, timed where the stereo path is
+    with pytest.raises(ValueError, match="field_depth"):
+        DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", field_depth="lidar").validate()

@@ -72,6 +72,9 @@ class DaggerConfig:
     # simulated D455's stereo depth (in place of ``corruption``) and the gray camera, latency,
     # PX4's randomized response, EKF2-like estimates and the field config's speed caps act.
     field_conditions: bool = False
+    # The field's depth while training: "stereo" (the simulated D455, as Table II's ``field``
+    # measures) or "approx" (its parametric stand-in, sim.sensor.approx: ~10x more env-steps/s).
+    field_depth: str = "stereo"
     # The vehicle the student flies: "ideal" (the batched sim's: commands followed at once) or
     # "px4" (PX4 v1.16's identified response, latency and EKF2-like estimates alone, Table II's
     # ``px4``: what `cmnav sitl --autopilot` flies); the field includes the latter.
@@ -96,7 +99,8 @@ class DaggerConfig:
 
     def env_config(self) -> NavEnvConfig:
         curriculum = CurriculumConfig(start_level=self.min_level, min_level=self.min_level, max_level=self.max_level)
-        field_options = {"corruption": "stereo", **field_env_overrides()} if self.field_conditions else {}
+        field_corruption = "stereo" if self.field_depth == "stereo" else "stereo-approx"
+        field_options = {"corruption": field_corruption, **field_env_overrides()} if self.field_conditions else {}
         if self.vehicle == "px4":
             field_options |= px4_vehicle_env_overrides()
         return replace(NavEnvConfig(num_envs=self.num_envs, corruption=self.corruption, curriculum=curriculum,
@@ -107,6 +111,8 @@ class DaggerConfig:
     def validate(self) -> None:
         if self.corruption not in ("train", "none"):
             raise ValueError(f"corruption={self.corruption!r} must be 'train' or 'none' (the depth-only baseline)")
+        if self.field_depth not in ("stereo", "approx"):
+            raise ValueError(f"field_depth={self.field_depth!r} must be 'stereo' or 'approx'")
         if self.vehicle not in ("ideal", "px4"):
             raise ValueError(f"vehicle={self.vehicle!r} must be 'ideal' or 'px4'")
         if self.vehicle == "px4" and self.field_conditions:

@@ -47,6 +47,7 @@ from sim.estimate import StateEstimateConfig, StateEstimator
 from sim.preprocess_torch import preprocess_depth_batch, preprocess_gray_batch
 from sim.render import RenderOutput, render
 from sim.sensor import D455, StereoConfig, StereoDepthSensor
+from sim.sensor.approx import StereoApproxConfig, approx_stereo_depth
 from sim.sensor.gray import GrayCamera, GrayCameraConfig, GrayFrame, sample_brightness
 from sim.rotations import quat_from_euler, quat_multiply, quat_rotate, quat_rotate_inverse, rotate_about_z
 from sim.world import WorldBatch, WorldConfig, env_seed, make_worlds
@@ -57,9 +58,12 @@ from .contract_torch import action_to_velocity_flu_batch, observation_state_batc
 
 RUNNING, SUCCESS, CRASH, TIMEOUT = 0, 1, 2, 3
 OUTCOMES = {SUCCESS: "success", CRASH: "crash", TIMEOUT: "timeout"}
-CORRUPTION_MODES = ("none", "train", "episode", "projector-off", "stereo", "stereo-projector-off")
+CORRUPTION_MODES = ("none", "train", "episode", "projector-off", "stereo", "stereo-projector-off", "stereo-approx",
+                    "stereo-approx-projector-off")  # fmt: skip
 # The modes whose depth is the simulated D455's stereo depth (sim.sensor), projector on or off.
 STEREO_MODES = {"stereo": True, "stereo-projector-off": False}
+# ... and those of its parametric stand-in (sim.sensor.approx: ~100x cheaper, its error stated in docs/sensor.md).
+APPROX_STEREO_MODES = {"stereo-approx": True, "stereo-approx-projector-off": False}
 LEVEL_SAMPLING = ("curriculum", "uniform")
 
 
@@ -345,6 +349,9 @@ class NavEnv:
         self.stereo_sensor = None
         if config.corruption in STEREO_MODES:
             self.stereo_sensor = StereoDepthSensor(replace(config.stereo, projector_on=STEREO_MODES[config.corruption]))
+        self.stereo_approx = None
+        if config.corruption in APPROX_STEREO_MODES:
+            self.stereo_approx = StereoApproxConfig(projector_on=APPROX_STEREO_MODES[config.corruption])
         self.generator = torch.Generator().manual_seed(seed)
         self.stage_seconds = {"render": 0.0, "stereo": 0.0, "gray": 0.0, "preprocess": 0.0, "encode": 0.0, "physics": 0.0,
                               "privileged": 0.0}  # fmt: skip
@@ -500,6 +507,9 @@ class NavEnv:
             # The D455's own depth at its matching resolution (the gray camera's rays, twice the
             # pixels): the contract's preprocessing resizes it to 224 x 224 like any camera's.
             depth_m = self.stereo_sensor.measure(self.world, cam_pos, cam_quat, self.generator).depth_m
+            t0 = self._timed("stereo", t0)
+        elif self.stereo_approx is not None:  # on the camera's own grid
+            depth_m = approx_stereo_depth(depth_m, out.gray_u8, self.camera.fx_px, self.stereo_approx, self.generator)
             t0 = self._timed("stereo", t0)
         elif cfg.corruption == "projector-off":
             depth_m, _ = self.projector_off.apply(depth_m, out.gray_u8, self.camera.fx_px, self.generator)

@@ -10,6 +10,9 @@
    configuration: a random half of the envs corrupted each step, kicks, jitter) at level ``level``
    with the paper-size policy, after warm-up steps that load kernels and fill caches.
 3. The privileged teacher's env (no 224 render, no encoder) with its PPO update: env-steps/s.
+   And the field (``training.policy.field``, DAgger's ``--field``) for the first N on the ``auto``
+   path: with the simulated D455's stereo matching and with its parametric stand-in
+   (``--field-depth approx``), their ratio in the same run.
 4. CMWAE training: optimizer steps/s in each precision.
 5. With ``recorded`` flight logs: bf16's latent error against fp32 on the recorded frames, and with
    ``policy_dir`` the change of the policy's action it causes, each model carrying its own GRU
@@ -28,6 +31,7 @@ from training.cmwae.model import Cmwae, make_config
 from training.cmwae.train import load_cmwae
 from training.fastpath import FastPath, FrozenEncoder, choose_fast_path, latent_parity, read_cpu_flags
 from training.policy.env import CurriculumConfig, NavEnv, NavEnvConfig, parity_frames
+from training.policy.field import field_env_overrides
 from training.policy.network import POLICY_SIZES, ActorCritic
 from training.policy.ppo import PpoConfig, ReturnNormalizer, ppo_update
 from training.policy.train import collect_rollout
@@ -36,6 +40,8 @@ from .device import device_name, synchronize
 
 STAGES = ("render", "preprocess", "encode", "physics", "policy", "ppo_update")
 TEACHER_STAGES = ("privileged", "physics", "policy", "ppo_update")
+FIELD_STAGES = ("render", "stereo", "gray", "preprocess", "encode", "physics", "policy", "ppo_update")
+FIELD_DEPTHS = {"stereo": "stereo", "approx": "stereo-approx"}  # --field-depth -> the env's corruption mode
 FP32_DEFAULT = FastPath(torch.float32, False, "the reference: fp32, default layout")
 
 
@@ -182,9 +188,17 @@ def run_train_bench(config: TrainBenchConfig) -> dict:
     teacher_env = NavEnv(_level_config(config.teacher_envs, config.level), None, device, seed=config.seed)
     teacher_policy = ActorCritic(replace(POLICY_SIZES[config.policy_size], obs_dim=teacher_env.config.privileged_obs_dim)).to(device)
     teacher = _rollout_row(teacher_env, teacher_policy, config, device, TEACHER_STAGES)
+    field_rows = []
+    for depth, corruption in FIELD_DEPTHS.items():
+        field_config = replace(_level_config(config.env_counts[0], config.level), corruption=corruption, **field_env_overrides())
+        env = NavEnv(field_config, _encoder_for(encoder, auto), device, seed=config.seed)
+        policy = ActorCritic(POLICY_SIZES[config.policy_size]).to(device)
+        field_rows.append({"field_depth": depth, **_rollout_row(env, policy, config, device, FIELD_STAGES)})
+    for row in field_rows:
+        row["ratio_to_stereo"] = row["env_steps_per_s"] / field_rows[0]["env_steps_per_s"]
     return {"device": device_name(device), "cpu": cpu_name(), "cpu_bf16_flags": sorted(f for f in read_cpu_flags() if "bf16" in f),
             "encoder": encoder_name, "threads": torch.get_num_threads(), "auto_path": {"name": auto.name, "reason": auto.reason},
-            "config": asdict(config), "encoder_speed": encoders, "rows": rows, "teacher": teacher,
+            "config": asdict(config), "encoder_speed": encoders, "rows": rows, "teacher": teacher, "field": field_rows,
             "cmwae_train": cmwae_train_speeds(config, device),
             "recorded_parity": recorded_parity(encoder, config, device) if config.recorded else None}  # fmt: skip
 
@@ -274,6 +288,16 @@ def format_train_bench(result: dict) -> str:
         "|---|---|---|" + "---|" * len(TEACHER_STAGES),
         f"| {t['envs']} | {t['env_steps_per_s']:.1f} | {t['collect_env_steps_per_s']:.1f} | "
         + " | ".join(f"{100 * t['share'][s]:.1f}" for s in TEACHER_STAGES) + " |",
+        "",
+        f"The field (--field, encoder on {result['auto_path']['name']}), with the PPO update:",
+        "",
+        "| envs | depth | env-steps/s | x stereo | " + " | ".join(f"{s} %" for s in FIELD_STAGES) + " |",
+        "|---|---|---|---|" + "---|" * len(FIELD_STAGES),
+    ]
+    for row in result["field"]:
+        shares = " | ".join(f"{100 * row['share'][s]:.1f}" for s in FIELD_STAGES)
+        lines.append(f"| {row['envs']} | {row['field_depth']} | {row['env_steps_per_s']:.1f} | {row['ratio_to_stereo']:.2f} | {shares} |")
+    lines += [
         "",
         f"CMWAE training (batch {cfg['cmwae_batch']}, {cfg['encoder_size']} size):",
         "",

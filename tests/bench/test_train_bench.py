@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from bench.train import STAGES, TEACHER_STAGES
+from bench.train import FIELD_STAGES, STAGES, TEACHER_STAGES
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -33,6 +33,10 @@ def test_bench_train_quick_reports_rates_and_stage_shares():
     assert result["encoder_speed"][2]["parity"]["images"] == result["config"]["encoder_batch"]
     assert [r["path"] for r in result["cmwae_train"]] == ["fp32", "fp32 channels_last", "bf16 channels_last"]
     assert all(r["steps_per_s"] > 0 for r in result["cmwae_train"])
+    # The field with the stereo matching and with its stand-in: the stereo stage ran in both.
+    assert [r["field_depth"] for r in result["field"]] == ["stereo", "approx"] and result["field"][0]["ratio_to_stereo"] == 1.0
+    for row in result["field"]:
+        assert set(row["share"]) == set(FIELD_STAGES) and row["share"]["stereo"] > 0 and row["share"]["gray"] > 0
 
 
 def test_bench_train_table_names_every_stage():
@@ -40,4 +44,4 @@ def test_bench_train_table_names_every_stage():
     assert proc.returncode == 0, proc.stderr[-3000:]
     header = next(line for line in proc.stdout.splitlines() if line.startswith("| envs | encoder"))
     assert all(f"{stage} %" in header for stage in STAGES)
-    assert "Privileged teacher" in proc.stdout and "CMWAE training" in proc.stdout and "| bf16 channels_last |" in proc.stdout
+    assert "Privileged teacher" in proc.stdout and "CMWAE training" in proc.stdout and "| 2 | approx |" in proc.stdout and "| bf16 channels_last |" in proc.stdout

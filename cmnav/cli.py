@@ -648,7 +648,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "state estimates, examples/cmnav.toml's speed caps)")  # fmt: skip
     _config_option(policy, "--field-depth", "training.policy.dagger:DaggerConfig.field_depth", choices=("stereo", "approx"),
                    help="DAgger --field: the depth trained on: the simulated D455's stereo matching, or its parametric "
-                   "stand-in (sim.sensor.approx, its error against stereo in docs/sensor.md; ~10x more env-steps/s)")  # fmt: skip
+                   "stand-in (sim.sensor.approx, its error against stereo in docs/sensor.md; 3x the env-steps/s)")  # fmt: skip
     _config_option(policy, "--vehicle", "training.policy.dagger:DaggerConfig.vehicle", choices=("ideal", "px4"),
                    help="DAgger: the vehicle the student flies: ideal (commands followed at once) or px4 (PX4 v1.16's "
                    "identified response with its delays, image-to-command latency and EKF2-like estimates, randomized "

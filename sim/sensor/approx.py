@@ -1,6 +1,6 @@
 """A parametric stand-in for the simulated D455 (:mod:`sim.sensor.stereo`), cheap enough to train
-with: the stereo path costs ~40 ms a frame on one core (the batched env runs ~25 env-steps/s with
-it, ~250 without), this one well under a millisecond.
+with: the stereo path costs ~40 ms a frame on one core, this one ~3 ms (`cmnav bench train`, the
+field at 16 envs: 72 env-steps/s against 24, the encoder then the largest share).
 
 From the rendered depth and gray image at any camera's resolution:
 

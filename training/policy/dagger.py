@@ -73,7 +73,7 @@ class DaggerConfig:
     # PX4's randomized response, EKF2-like estimates and the field config's speed caps act.
     field_conditions: bool = False
     # The field's depth while training: "stereo" (the simulated D455, as Table II's ``field``
-    # measures) or "approx" (its parametric stand-in, sim.sensor.approx: ~10x more env-steps/s).
+    # measures) or "approx" (its parametric stand-in, sim.sensor.approx: 3x the env-steps/s in cmnav bench train).
     field_depth: str = "stereo"
     # The vehicle the student flies: "ideal" (the batched sim's: commands followed at once) or
     # "px4" (PX4 v1.16's identified response, latency and EKF2-like estimates alone, Table II's

@@ -62,7 +62,7 @@ CORRUPTION_MODES = ("none", "train", "episode", "projector-off", "stereo", "ster
                     "stereo-approx-projector-off")  # fmt: skip
 # The modes whose depth is the simulated D455's stereo depth (sim.sensor), projector on or off.
 STEREO_MODES = {"stereo": True, "stereo-projector-off": False}
-# ... and those of its parametric stand-in (sim.sensor.approx: ~100x cheaper, its error stated in docs/sensor.md).
+# ... and those of its parametric stand-in (sim.sensor.approx: 3x the env-steps/s, its error stated in docs/sensor.md).
 APPROX_STEREO_MODES = {"stereo-approx": True, "stereo-approx-projector-off": False}
 LEVEL_SAMPLING = ("curriculum", "uniform")
 

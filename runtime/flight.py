@@ -257,15 +257,18 @@ class FlightLoop:
     async def retreat(self, distance_m: float) -> dict | None:
         """Fly back along the last episode's path (the estimates its steps flew from) for
         ``distance_m`` of horizontal length (``runtime.watchdog.retreat_path``, pursued at
-        ``RETREAT_SPEED_M_S``), at the control rate, heading unchanged.  Blind but on a path just
+        ``RETREAT_SPEED_M_S``) at the height where it stopped, at the control rate, heading unchanged.  Blind but on a path just
         flown; it ends at the path's end ("arrived"), after twice the time it needs plus
         ``RETREAT_TIME_MARGIN_S`` ("timeout"), or when the estimate goes stale ("stale_telemetry").
         Returns its record {ended, retreated_m, duration_s}, None once the pilot has the vehicle."""
+        start = self.vehicle.state().pos_enu_m.copy()
         path = retreat_path(np.array(self._flown_enu_m).reshape(-1, 3), distance_m)
+        # At the height it stopped at, not the path's: on PX4 the estimate's height drifts from the
+        # truth, and a path that came down to the goal led back up into the ceiling (2 of 6 flights).
+        path[:, 2] = start[2]
         t0_ns = time.monotonic_ns()
         limit_ns = t0_ns + int((2.0 * distance_m / RETREAT_SPEED_M_S + RETREAT_TIME_MARGIN_S) * _NS_PER_S)
         stale_ns = int(self.config.watchdog.telemetry_stale_ms * _NS_PER_MS)
-        start = self.vehicle.state().pos_enu_m.copy()
         progress_m, ended = 0.0, "arrived"
         log.info("retreating %.2f m back along the path flown (%d points)", distance_m, len(path))
         while len(path) > 1:

@@ -53,11 +53,11 @@ from .log.recorder import Recorder
 from .model import PolicyModel
 from .policy_step import PolicyMemory, StepResult, compute_step
 from .slots import LatestSlot
-from .state import VehicleError, VehicleState
+from .state import MODE_OFFBOARD, VehicleError, VehicleState
 from .timing import StageTimes
 from .watchdog import (
-    RETREAT_ARRIVED_M,
     RETREAT_SPEED_M_S,
+    RetreatTracker,
     TripCause,
     WatchInputs,
     Watchdog,
@@ -65,7 +65,6 @@ from .watchdog import (
     brake_record,
     brake_setpoint,
     retreat_path,
-    retreat_velocity_enu,
 )
 
 log = logging.getLogger(__name__)
@@ -74,7 +73,7 @@ _NS_PER_MS = 1_000_000
 _NS_PER_S = 1_000_000_000
 STATE_LOG_PERIOD_S = 0.1
 ALIVE_SLEEP_SLICE_S = 0.1  # how often on_alive is called while the loop sleeps on purpose
-RETREAT_TIME_MARGIN_S = 4.0  # a retreat may take twice its length at RETREAT_SPEED_M_S, plus this
+RETREAT_TIME_MARGIN_S = 4.0  # a retreat may take twice its reference's time, plus this
 
 
 class VehicleLink(CommandedVehicle, Protocol):
@@ -256,34 +255,45 @@ class FlightLoop:
 
     async def retreat(self, distance_m: float) -> dict | None:
         """Fly back along the last episode's path (the estimates its steps flew from) for
-        ``distance_m`` of horizontal length (``runtime.watchdog.retreat_path``, pursued at
-        ``RETREAT_SPEED_M_S``) at the height where it stopped, at the control rate, heading unchanged.  Blind but on a path just
-        flown; it ends at the path's end ("arrived"), after twice the time it needs plus
-        ``RETREAT_TIME_MARGIN_S`` ("timeout"), or when the estimate goes stale ("stale_telemetry").
-        Returns its record {ended, retreated_m, duration_s}, None once the pilot has the vehicle."""
+        ``distance_m`` of horizontal length, at the height where it stopped, heading unchanged, at
+        the control rate (``runtime.watchdog.RetreatTracker``: a reference point moving back at
+        ``RETREAT_SPEED_M_S``, followed with a PI term).  Blind but on a path just flown; it ends
+        once the vehicle is at the path's end ("arrived"), after twice the time the reference
+        needs plus ``RETREAT_TIME_MARGIN_S`` ("timeout"), or when the estimate goes stale
+        ("stale_telemetry").  Returns its record {ended, retreated_m, duration_s}, None once the
+        pilot has the vehicle (the gate released, or a mode other than offboard reported during
+        it: then nothing more is sent)."""
         start = self.vehicle.state().pos_enu_m.copy()
         path = retreat_path(np.array(self._flown_enu_m).reshape(-1, 3), distance_m)
         # At the height it stopped at, not the path's: on PX4 the estimate's height drifts from the
         # truth, and a path that came down to the goal led back up into the ceiling (2 of 6 flights).
         path[:, 2] = start[2]
+        tracker = RetreatTracker(path)
         t0_ns = time.monotonic_ns()
-        limit_ns = t0_ns + int((2.0 * distance_m / RETREAT_SPEED_M_S + RETREAT_TIME_MARGIN_S) * _NS_PER_S)
+        limit_ns = t0_ns + int((2.0 * tracker.length_m / RETREAT_SPEED_M_S + RETREAT_TIME_MARGIN_S) * _NS_PER_S)
         stale_ns = int(self.config.watchdog.telemetry_stale_ms * _NS_PER_MS)
-        progress_m, ended = 0.0, "arrived"
-        log.info("retreating %.2f m back along the path flown (%d points)", distance_m, len(path))
+        ended, t_last_ns = "arrived", t0_ns
+        log.info("retreating %.2f m back along the path flown (%d points)", tracker.length_m, len(path))
         while len(path) > 1:
             state, now_ns = self.vehicle.state(), time.monotonic_ns()
+            elapsed_s = (now_ns - t0_ns) / _NS_PER_S
             if self.gate.released:
+                return None
+            if state.flight_mode != MODE_OFFBOARD and state.t_mode_ns > t0_ns:
+                # A pilot (or the autopilot's failsafe) took the vehicle: nothing more is sent, no Hold either.
+                log.warning("flight mode %s during the retreat: the vehicle is no longer the runtime's", state.flight_mode)
+                self.gate.release()
                 return None
             if now_ns - state.t_telemetry_ns > stale_ns:
                 ended = "stale_telemetry"
                 break
-            if np.linalg.norm(path[-1, :2] - state.pos_enu_m[:2]) < RETREAT_ARRIVED_M:
+            if tracker.arrived(state.pos_enu_m, elapsed_s):
                 break
             if now_ns >= limit_ns:
                 ended = "timeout"
                 break
-            vel_enu, progress_m = retreat_velocity_enu(state.pos_enu_m, path, progress_m)
+            vel_enu = tracker.velocity_enu(state.pos_enu_m, elapsed_s, (now_ns - t_last_ns) / _NS_PER_S)
+            t_last_ns = now_ns
             cmd_flu = np.array([*world_enu_to_vehicle(vel_enu, state.yaw_enu_rad), 0.0])
             cmd = velocity_flu_to_mavsdk(cmd_flu)
             sent = await self.gate.send_own(cmd)

@@ -151,11 +151,13 @@ def brake_setpoint(vehicle: VehicleState, now_ns: int, config: WatchdogConfig) -
 
 
 # Landing clear of what lay ahead (docs/px4-sitl.md §8): after the goal a dry run flies back along
-# the path it came by (free: it was just flown) before its landing, slowly, at the height flown.
-RETREAT_SPEED_M_S = 0.5  # horizontal, along the path
-RETREAT_LOOKAHEAD_M = 0.5  # the point pursued lies this far along the path beyond the nearest one
+# the path it came by (free: it was just flown) before its landing, slowly, at the height it stopped.
+RETREAT_SPEED_M_S = 0.5  # the reference point's speed back along the path
+RETREAT_POSITION_GAIN_PER_S = 1.0  # velocity per metre between the vehicle and the reference (PX4's MPC_XY_P: 0.95)
+RETREAT_INTEGRAL_GAIN_PER_S2 = 0.3  # ... and per metre-second of it: cancels a biased velocity estimate
+RETREAT_INTEGRAL_MAX_M_S = 0.8  # the integral term's largest velocity (no wind-up)
+RETREAT_MAX_SPEED_M_S = 1.0  # horizontal command limit
 RETREAT_ARRIVED_M = 0.15  # horizontal distance to the path's end that counts as arrived
-RETREAT_SLOWDOWN_PER_S = 2.0  # speed = this x the distance left, near the end (no overshoot)
 RETREAT_CLIMB_GAIN_PER_S = 1.0  # vertical speed per metre of height error
 RETREAT_CLIMB_MAX_M_S = 0.3
 
@@ -177,37 +179,55 @@ def retreat_path(flown_enu_m: np.ndarray, distance_m: float) -> np.ndarray:
     return np.vstack([points[:i], end])
 
 
-def retreat_velocity_enu(pos_enu_m: np.ndarray, path_enu_m: np.ndarray, progress_m: float) -> tuple[np.ndarray, float]:
-    """Pure pursuit along ``path_enu_m`` (from :func:`retreat_path`): the velocity to command (world
-    ENU m/s) and the progress along the path (m of horizontal length; it never goes back).
+class RetreatTracker:
+    """Follows a reference point that moves along ``path`` (from :func:`retreat_path`) at
+    ``RETREAT_SPEED_M_S``: velocity = the reference's own + a PI term on the horizontal distance to
+    it (limited to ``RETREAT_MAX_SPEED_M_S``), vertical speed toward its height.
 
-    The pursued point lies ``RETREAT_LOOKAHEAD_M`` beyond the path point nearest the vehicle (searched
-    from ``progress_m`` on); the horizontal speed is ``RETREAT_SPEED_M_S``, less near the end; the
-    vertical speed holds the pursued point's height."""
-    path = np.asarray(path_enu_m, dtype=np.float64)
-    pos = np.asarray(pos_enu_m, dtype=np.float64)
-    steps_m = np.linalg.norm(np.diff(path[:, :2], axis=0), axis=1)
-    at_m = np.concatenate([[0.0], np.cumsum(steps_m)])
-    length_m = float(at_m[-1])
-    nearest_m, nearest_d = progress_m, math.inf
-    for k, step_m in enumerate(steps_m):  # the nearest point of each segment not behind progress_m
-        if step_m <= 0.0 or at_m[k + 1] < progress_m:
-            continue
-        a, b = path[k, :2], path[k + 1, :2]
-        share = float(np.clip(np.dot(pos[:2] - a, b - a) / step_m**2, 0.0, 1.0))
-        along_m = max(float(at_m[k] + share * step_m), progress_m)
-        d = float(np.linalg.norm(_path_point(path, at_m, along_m)[:2] - pos[:2]))
-        if d < nearest_d:
-            nearest_m, nearest_d = along_m, d
-    target = _path_point(path, at_m, min(nearest_m + RETREAT_LOOKAHEAD_M, length_m))
-    end = path[-1]
-    to_target = target[:2] - pos[:2]
-    left_m = float(np.linalg.norm(end[:2] - pos[:2]))
-    speed = min(RETREAT_SPEED_M_S, RETREAT_SLOWDOWN_PER_S * left_m)
-    norm = float(np.linalg.norm(to_target))
-    horizontal = to_target * (speed / norm) if norm > 1e-6 else np.zeros(2)
-    climb = float(np.clip(RETREAT_CLIMB_GAIN_PER_S * (target[2] - pos[2]), -RETREAT_CLIMB_MAX_M_S, RETREAT_CLIMB_MAX_M_S))
-    return np.array([horizontal[0], horizontal[1], climb]), nearest_m
+    The integral term is there for PX4: its velocity estimate can be off from the truth by
+    0.3-0.7 m/s at these speeds (SIH, measured: the estimate's position moved 1.2 m the other way
+    while its velocity said 0.35 m/s toward the target), so a velocity command alone can leave the
+    vehicle drifting the wrong way; the position error's integral commands what it takes."""
+
+    def __init__(self, path_enu_m: np.ndarray) -> None:
+        self.path = np.asarray(path_enu_m, dtype=np.float64)
+        steps_m = np.linalg.norm(np.diff(self.path[:, :2], axis=0), axis=1)
+        self._at_m = np.concatenate([[0.0], np.cumsum(steps_m)])
+        self.length_m = float(self._at_m[-1])
+        self._integral = np.zeros(2)
+
+    def reference(self, elapsed_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """The reference point (world ENU m) and its velocity (m/s) ``elapsed_s`` into the retreat."""
+        along_m = min(RETREAT_SPEED_M_S * max(elapsed_s, 0.0), self.length_m)
+        point = _path_point(self.path, self._at_m, along_m)
+        if along_m >= self.length_m or self.length_m <= 0.0:
+            return point, np.zeros(3)
+        ahead = _path_point(self.path, self._at_m, min(along_m + 0.05, self.length_m)) - point
+        norm = float(np.linalg.norm(ahead[:2]))
+        velocity = np.zeros(3) if norm <= 1e-9 else np.array([*(ahead[:2] / norm * RETREAT_SPEED_M_S), 0.0])
+        return point, velocity
+
+    def velocity_enu(self, pos_enu_m: np.ndarray, elapsed_s: float, dt_s: float) -> np.ndarray:
+        """The velocity to command now (world ENU m/s)."""
+        point, feed = self.reference(elapsed_s)
+        error = point[:2] - np.asarray(pos_enu_m, dtype=np.float64)[:2]
+        self._integral += error * dt_s
+        limit = RETREAT_INTEGRAL_MAX_M_S / RETREAT_INTEGRAL_GAIN_PER_S2
+        norm = float(np.linalg.norm(self._integral))
+        if norm > limit:
+            self._integral *= limit / norm
+        horizontal = feed[:2] + RETREAT_POSITION_GAIN_PER_S * error + RETREAT_INTEGRAL_GAIN_PER_S2 * self._integral
+        speed = float(np.linalg.norm(horizontal))
+        if speed > RETREAT_MAX_SPEED_M_S:
+            horizontal *= RETREAT_MAX_SPEED_M_S / speed
+        climb = float(np.clip(RETREAT_CLIMB_GAIN_PER_S * (point[2] - pos_enu_m[2]), -RETREAT_CLIMB_MAX_M_S, RETREAT_CLIMB_MAX_M_S))
+        return np.array([horizontal[0], horizontal[1], climb])
+
+    def arrived(self, pos_enu_m: np.ndarray, elapsed_s: float) -> bool:
+        """The reference is at the path's end and the vehicle within ``RETREAT_ARRIVED_M`` of it."""
+        if RETREAT_SPEED_M_S * elapsed_s < self.length_m:
+            return False
+        return float(np.linalg.norm(self.path[-1, :2] - np.asarray(pos_enu_m)[:2])) < RETREAT_ARRIVED_M
 
 
 def _path_point(path: np.ndarray, at_m: np.ndarray, along_m: float) -> np.ndarray:

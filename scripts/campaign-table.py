@@ -42,6 +42,29 @@ def contact_while_landing(r: dict) -> bool:
     return any(mode == "LAND" and t <= t_contact for t, mode in modes)
 
 
+def contact_phase(r: dict) -> str | None:
+    """When ground truth saw the contact: "take-off" (before offboard, as the follower's 1 Hz mode
+    log sees it), "flight" (offboard, before the goal), "after goal, offboard" (the brake or the
+    dry run's retreat), "after goal, landing" (PX4's Hold or Land); None without one."""
+    truth = r.get("ground_truth") or {}
+    contact = truth.get("contact")
+    if not contact:
+        return None
+    offboard_t, goal_t = truth.get("offboard_t_s"), truth.get("goal_reached_t_s")
+    if offboard_t is None or contact["t_s"] < offboard_t:
+        return "take-off"
+    if goal_t is None or contact["t_s"] < goal_t:
+        return "flight"
+    if not r.get("run_dir"):
+        return "after goal"
+    try:
+        modes = json.loads((Path(r["run_dir"]) / "trace.json").read_text())["mode_log"]
+    except (OSError, ValueError, KeyError):
+        return "after goal"
+    left = [t for t, mode in modes if offboard_t < t and mode != "OFFBOARD"]
+    return "after goal, offboard" if not left or contact["t_s"] < left[0] else "after goal, landing"
+
+
 def main(path: str) -> int:
     rows = [json.loads(line) for line in open(path) if line.strip().startswith("{")]
     by_level = collections.defaultdict(list)
@@ -74,6 +97,15 @@ def main(path: str) -> int:
               f"{max(hold_speeds) if hold_speeds else float('nan'):.2f} | {_median(tracking):.2f} |")
         all_trips.update(t["cause"] for r in rs for t in r.get("watchdog_trips", []))
     print("watchdog trips by cause:", dict(all_trips) or "none")
+    print()
+    print("| level | contacts: take-off | in flight before the goal | after the goal, offboard (brake, retreat) | after the goal, Hold/Land | retreats (ended: count) |")
+    print("|---|---|---|---|---|---|")
+    for level, rs in sorted(by_level.items()):
+        phases = collections.Counter(contact_phase(r) for r in rs)
+        retreats = collections.Counter(((r.get("brake") or {}).get("retreat") or {}).get("ended") for r in rs)
+        retreats.pop(None, None)
+        print(f"| {level} | {phases['take-off']} | {phases['flight']} | {phases['after goal, offboard']} | "
+              f"{phases['after goal, landing'] + phases['after goal']} | {dict(retreats) or '-'} |")
     return 0
 
 

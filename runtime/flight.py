@@ -176,6 +176,7 @@ class FlightLoop:
         self._memory = PolicyMemory(model)
         self._step_started_ns = 0
         self._flown_enu_m: list[np.ndarray] = []  # the estimate at each step of the episode (local ENU m)
+        self.handed_over_in_retreat = False  # a mode other than offboard came during the last retreat
         self._background: list[asyncio.Task] = []
         # The result of the last :meth:`fly` that was cancelled (None if it returned).
         self.interrupted: EpisodeResult | None = None
@@ -283,6 +284,7 @@ class FlightLoop:
                 # A pilot (or the autopilot's failsafe) took the vehicle: nothing more is sent, no Hold either.
                 log.warning("flight mode %s during the retreat: the vehicle is no longer the runtime's", state.flight_mode)
                 self.gate.release()
+                self.handed_over_in_retreat = True
                 return None
             if now_ns - state.t_telemetry_ns > stale_ns:
                 ended = "stale_telemetry"
@@ -328,6 +330,7 @@ class FlightLoop:
         settle_heap()
         episode = _Episode(t0_ns=time.monotonic_ns(), timeout_s=timeout_s, retreat_m=retreat_m)
         self._flown_enu_m = []
+        self.handed_over_in_retreat = False
         self.watchdog.start(episode.t0_ns, self.vehicle.state())
         self._on_watchdog_event({"event": "start", "detail": repr(self.config.watchdog), "t_s": 0.0})
         log.info("episode start: goal %s (local ENU m), time limit %.1f s", np.round(self._goal_enu_m, 2), timeout_s)

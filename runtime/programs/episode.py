@@ -147,7 +147,7 @@ class EpisodeScript:
             self.flight.enter(Phase.EPISODE)
             result = await fly(state)
             self.flight.enter(Phase.HOLDING)
-            if self.loop.watchdog.pilot_took_over or self.loop.gate.released:  # in flight, or in the retreat after it
+            if self.loop.watchdog.pilot_took_over or self.loop.handed_over_in_retreat:  # in flight, or in the retreat after it
                 log.warning("the pilot took over: not landing, the vehicle is theirs")
                 return result
             if result.abort_reason == TripCause.VEHICLE_FAULT.value and not await self._still_armed():

@@ -74,16 +74,17 @@ async def _fly_and_retreat(model_path, vehicle, goal, retreat_m, camera=None):
     try:
         await loop.wait_first_frame(2.0)
         result = await loop.fly(goal, 20.0, retreat_m)
-        return result, vehicle.pos.copy()
+        return result, vehicle.pos.copy(), loop.handed_over_in_retreat
     finally:
         await loop.close()
         vehicle._task.cancel()
 
 
+@pytest.mark.flight
 def test_a_goal_reached_is_followed_by_the_retreat_then_hold(goal_seeker):  # noqa: F811
     vehicle = LaggingVehicle()
     goal = START + np.array([4.0, 0.0, 0.0])
-    result, at_hold = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, goal, 1.5))
+    result, at_hold, _ = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, goal, 1.5))
     assert result.outcome == "success", result
     retreat = result.brake["retreat"]
     assert retreat["ended"] == "arrived" and retreat["retreated_m"] > 1.2, result.brake
@@ -92,21 +93,24 @@ def test_a_goal_reached_is_followed_by_the_retreat_then_hold(goal_seeker):  # no
     assert vehicle.holds == 1 and vehicle.speed_at_hold < 0.2 and result.brake["speed_at_hold_m_s"] < 0.2
 
 
+@pytest.mark.flight
 def test_the_retreat_holds_the_height_it_stopped_at_not_the_paths(goal_seeker):  # noqa: F811
     vehicle = LaggingVehicle()
     goal = START + np.array([4.0, 0.0, -1.0])  # the path comes down to the goal
-    result, at_hold = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, goal, 1.5))
+    result, at_hold, _ = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, goal, 1.5))
     assert result.outcome == "success" and result.brake["retreat"]["ended"] == "arrived", result.brake
     assert at_hold[2] < START[2] - 0.5  # it did not climb back up the path (on PX4: into the ceiling)
 
 
+@pytest.mark.flight
 def test_a_timeout_or_a_trip_lands_where_it_stopped(goal_seeker):  # noqa: F811
     vehicle = LaggingVehicle()
-    result, _ = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, START + np.array([15.0, 0.0, 0.0]), 1.5,
+    result, _, _ = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, START + np.array([15.0, 0.0, 0.0]), 1.5,
                                              camera=FakeCamera(stop_after_s=1.0)))  # fmt: skip
     assert result.outcome == "aborted" and "retreat" not in result.brake
 
 
+@pytest.mark.flight
 def test_a_stale_estimate_ends_the_retreat_into_the_brake_and_hold(goal_seeker):  # noqa: F811
     class EstimateDiesAfterTheBrake(LaggingVehicle):
         def state(self):
@@ -116,11 +120,12 @@ def test_a_stale_estimate_ends_the_retreat_into_the_brake_and_hold(goal_seeker):
             return s
 
     vehicle = EstimateDiesAfterTheBrake()
-    result, _ = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, START + np.array([4.0, 0.0, 0.0]), 1.5))
+    result, _, _ = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, START + np.array([4.0, 0.0, 0.0]), 1.5))
     assert result.outcome == "success" and result.brake["retreat"]["ended"] == "stale_telemetry", result.brake
     assert vehicle.holds == 1
 
 
+@pytest.mark.flight
 def test_a_pilot_taking_over_during_the_retreat_gets_the_vehicle_and_no_hold(goal_seeker, monkeypatch):  # noqa: F811
     class PilotTakesOverWhileRetreating(LaggingVehicle):
         retreating = False
@@ -138,6 +143,6 @@ def test_a_pilot_taking_over_during_the_retreat_gets_the_vehicle_and_no_hold(goa
         return await retreat(loop, distance_m)
 
     monkeypatch.setattr(FlightLoop, "retreat", retreat_with_a_pilot)
-    result, _ = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, START + np.array([4.0, 0.0, 0.0]), 1.5))
+    result, _, handed_over = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, START + np.array([4.0, 0.0, 0.0]), 1.5))
     assert result.outcome == "success" and result.brake is None  # the brake's record gone with the vehicle
-    assert vehicle.holds == 0
+    assert vehicle.holds == 0 and handed_over  # and the dry run does not land it (EpisodeScript.dry_run)

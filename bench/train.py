@@ -31,7 +31,7 @@ from training.cmwae.model import Cmwae, make_config
 from training.cmwae.train import load_cmwae
 from training.fastpath import FastPath, FrozenEncoder, choose_fast_path, latent_parity, read_cpu_flags
 from training.policy.env import CurriculumConfig, NavEnv, NavEnvConfig, parity_frames
-from training.policy.field import field_env_overrides
+from training.policy.field import FIELD_DEPTHS, field_env_overrides
 from training.policy.network import POLICY_SIZES, ActorCritic
 from training.policy.ppo import PpoConfig, ReturnNormalizer, ppo_update
 from training.policy.train import collect_rollout
@@ -41,7 +41,6 @@ from .device import device_name, synchronize
 STAGES = ("render", "preprocess", "encode", "physics", "policy", "ppo_update")
 TEACHER_STAGES = ("privileged", "physics", "policy", "ppo_update")
 FIELD_STAGES = ("render", "stereo", "gray", "preprocess", "encode", "physics", "policy", "ppo_update")
-FIELD_DEPTHS = {"stereo": "stereo", "approx": "stereo-approx"}  # --field-depth -> the env's corruption mode
 FP32_DEFAULT = FastPath(torch.float32, False, "the reference: fp32, default layout")
 
 
@@ -253,6 +252,13 @@ def cpu_name() -> str:
     return platform.processor() or platform.machine()
 
 
+def _stage_table(columns: tuple[str, ...], stages: tuple[str, ...], rows: list[tuple[tuple[str, ...], dict]]) -> list[str]:
+    """A markdown table: ``columns``, then each stage's share of the time (%), a row per (cells, shares)."""
+    lines = ["| " + " | ".join([*columns, *(f"{s} %" for s in stages)]) + " |", "|" + "---|" * (len(columns) + len(stages))]
+    lines += ["| " + " | ".join([*cells, *(f"{100 * share[s]:.1f}" for s in stages)]) + " |" for cells, share in rows]
+    return lines
+
+
 def format_train_bench(result: dict) -> str:
     cfg = result["config"]
     lines = [
@@ -269,35 +275,25 @@ def format_train_bench(result: dict) -> str:
         parity = row.get("parity")
         error = f"{parity['max_rel']:.4f} / {parity['rms_rel']:.4f}" if parity else "-"
         lines.append(f"| {row['path']} | {row['frames_per_s']:.1f} | {row['ratio_to_fp32']:.2f} | {error} |")
+    t = result["teacher"]
     lines += [
         "",
         f"Policy training (PPO, rollout {cfg['rollout_steps']} steps):",
         "",
-        "| envs | encoder | env-steps/s (with PPO update) | env-steps/s (collect only) | " + " | ".join(f"{s} %" for s in STAGES) + " |",
-        "|---|---|---|---|" + "---|" * len(STAGES),
-    ]
-    for row in result["rows"]:
-        shares = " | ".join(f"{100 * row['share'][s]:.1f}" for s in STAGES)
-        lines.append(f"| {row['envs']} | {row['precision']} | {row['env_steps_per_s']:.1f} | {row['collect_env_steps_per_s']:.1f} | {shares} |")
-    t = result["teacher"]
-    lines += [
+        *_stage_table(("envs", "encoder", "env-steps/s (with PPO update)", "env-steps/s (collect only)"), STAGES,
+                      [((str(r["envs"]), r["precision"], f"{r['env_steps_per_s']:.1f}", f"{r['collect_env_steps_per_s']:.1f}"), r["share"])
+                       for r in result["rows"]]),
         "",
         "Privileged teacher (state + 32x18 clean depth, no encoder), with its PPO update:",
         "",
-        "| envs | env-steps/s (with PPO update) | env-steps/s (collect only) | " + " | ".join(f"{s} %" for s in TEACHER_STAGES) + " |",
-        "|---|---|---|" + "---|" * len(TEACHER_STAGES),
-        f"| {t['envs']} | {t['env_steps_per_s']:.1f} | {t['collect_env_steps_per_s']:.1f} | "
-        + " | ".join(f"{100 * t['share'][s]:.1f}" for s in TEACHER_STAGES) + " |",
+        *_stage_table(("envs", "env-steps/s (with PPO update)", "env-steps/s (collect only)"), TEACHER_STAGES,
+                      [((str(t["envs"]), f"{t['env_steps_per_s']:.1f}", f"{t['collect_env_steps_per_s']:.1f}"), t["share"])]),
         "",
         f"The field (--field, encoder on {result['auto_path']['name']}), with the PPO update:",
         "",
-        "| envs | depth | env-steps/s | x stereo | " + " | ".join(f"{s} %" for s in FIELD_STAGES) + " |",
-        "|---|---|---|---|" + "---|" * len(FIELD_STAGES),
-    ]
-    for row in result["field"]:
-        shares = " | ".join(f"{100 * row['share'][s]:.1f}" for s in FIELD_STAGES)
-        lines.append(f"| {row['envs']} | {row['field_depth']} | {row['env_steps_per_s']:.1f} | {row['ratio_to_stereo']:.2f} | {shares} |")
-    lines += [
+        *_stage_table(("envs", "depth", "env-steps/s", "x stereo"), FIELD_STAGES,
+                      [((str(r["envs"]), r["field_depth"], f"{r['env_steps_per_s']:.1f}", f"{r['ratio_to_stereo']:.2f}"), r["share"])
+                       for r in result["field"]]),
         "",
         f"CMWAE training (batch {cfg['cmwae_batch']}, {cfg['encoder_size']} size):",
         "",

@@ -169,14 +169,11 @@ def retreat_path(flown_enu_m: np.ndarray, distance_m: float) -> np.ndarray:
     points = np.asarray(flown_enu_m, dtype=np.float64)[::-1]
     if len(points) < 2 or distance_m <= 0.0:
         return points[:1].copy()
-    steps_m = np.linalg.norm(np.diff(points[:, :2], axis=0), axis=1)
-    walked_m = np.concatenate([[0.0], np.cumsum(steps_m)])
+    walked_m = _arc_lengths_m(points)
     if walked_m[-1] <= distance_m:
         return points.copy()
     i = int(np.searchsorted(walked_m, distance_m))  # walked_m[i - 1] < distance_m <= walked_m[i]
-    share = (distance_m - walked_m[i - 1]) / steps_m[i - 1]
-    end = points[i - 1] + share * (points[i] - points[i - 1])
-    return np.vstack([points[:i], end])
+    return np.vstack([points[:i], _path_point(points, walked_m, distance_m)])
 
 
 class RetreatTracker:
@@ -191,8 +188,7 @@ class RetreatTracker:
 
     def __init__(self, path_enu_m: np.ndarray) -> None:
         self.path = np.asarray(path_enu_m, dtype=np.float64)
-        steps_m = np.linalg.norm(np.diff(self.path[:, :2], axis=0), axis=1)
-        self._at_m = np.concatenate([[0.0], np.cumsum(steps_m)])
+        self._at_m = _arc_lengths_m(self.path)
         self.length_m = float(self._at_m[-1])
         self._integral = np.zeros(2)
 
@@ -228,6 +224,11 @@ class RetreatTracker:
         if RETREAT_SPEED_M_S * elapsed_s < self.length_m:
             return False
         return float(np.linalg.norm(self.path[-1, :2] - np.asarray(pos_enu_m)[:2])) < RETREAT_ARRIVED_M
+
+
+def _arc_lengths_m(path: np.ndarray) -> np.ndarray:
+    """[N] horizontal length along the polyline ``path`` [N, 3] to each of its points (m)."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path[:, :2], axis=0), axis=1))])
 
 
 def _path_point(path: np.ndarray, at_m: np.ndarray, along_m: float) -> np.ndarray:

@@ -39,7 +39,7 @@ from ..distributed import DistInfo, log_weights_digest, wall_budget_spent
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .env import CRASH, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder
-from .field import field_env_overrides, px4_vehicle_env_overrides
+from .field import FIELD_DEPTHS, field_env_overrides, px4_vehicle_env_overrides
 from .network import CHECKPOINT_KIND, STUDENT, TEACHER, ActorCritic, PolicyConfig, load_policy
 from .train import init_from_policy
 
@@ -99,8 +99,7 @@ class DaggerConfig:
 
     def env_config(self) -> NavEnvConfig:
         curriculum = CurriculumConfig(start_level=self.min_level, min_level=self.min_level, max_level=self.max_level)
-        field_corruption = "stereo" if self.field_depth == "stereo" else "stereo-approx"
-        field_options = {"corruption": field_corruption, **field_env_overrides()} if self.field_conditions else {}
+        field_options = {"corruption": FIELD_DEPTHS[self.field_depth], **field_env_overrides()} if self.field_conditions else {}
         if self.vehicle == "px4":
             field_options |= px4_vehicle_env_overrides()
         return replace(NavEnvConfig(num_envs=self.num_envs, corruption=self.corruption, curriculum=curriculum,
@@ -111,8 +110,8 @@ class DaggerConfig:
     def validate(self) -> None:
         if self.corruption not in ("train", "none"):
             raise ValueError(f"corruption={self.corruption!r} must be 'train' or 'none' (the depth-only baseline)")
-        if self.field_depth not in ("stereo", "approx"):
-            raise ValueError(f"field_depth={self.field_depth!r} must be 'stereo' or 'approx'")
+        if self.field_depth not in FIELD_DEPTHS:
+            raise ValueError(f"field_depth={self.field_depth!r} must be one of {', '.join(FIELD_DEPTHS)}")
         if self.vehicle not in ("ideal", "px4"):
             raise ValueError(f"vehicle={self.vehicle!r} must be 'ideal' or 'px4'")
         if self.vehicle == "px4" and self.field_conditions:

@@ -34,6 +34,9 @@ if sys.version_info >= (3, 11):
 else:  # Python 3.10
     import tomli as tomllib
 
+# The field's depth while training (DAgger's --field-depth) -> the batched env's corruption mode:
+# the simulated D455's stereo matching, or its parametric stand-in (sim.sensor.approx).
+FIELD_DEPTHS = {"stereo": "stereo", "approx": "stereo-approx"}
 # The shipped field config (what `cmnav fly --config` reads on the Jetson).
 FIELD_CONFIG_TOML = Path(__file__).resolve().parents[2] / "examples" / "cmnav.toml"
 # Capture -> command sent, per episode: the runtime's measured frame age at p50 is 20-60 ms

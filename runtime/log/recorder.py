@@ -52,7 +52,6 @@ from ..camera.frame import Frame
 from ..config import RecorderConfig
 from ..contract import CONTRACT_VERSION, VelocityBodyYawspeed
 from ..policy_step import StepResult
-from ..service.affinity import run_as_background_thread
 from ..state import StatusText, VehicleState
 from .topics import (
     CAMERA_FRAME_ID,
@@ -269,7 +268,6 @@ class Recorder:
                 log.warning("flight log writer is behind: %d records dropped so far", self.stats.dropped)
 
     def _run(self) -> None:
-        run_as_background_thread()  # the control path's threads come first on the runtime's core
         try:
             if self._write_until_stopped():
                 return

@@ -69,7 +69,7 @@ from ..model import ModelLoadError, PolicyModel, check_outputs_finite, resolve_p
 from ..report.worker import ReportWorker
 from ..service.affinity import prepare_control_process
 from ..service.sdnotify import SystemdNotifier
-from ..service.shutdown import close_step, in_daemon_thread
+from ..service.shutdown import close_step, in_daemon_thread, run_bounded
 from ..service.signals import StopSignals, cancel_on_stop_signals, ignore_stop_signals
 from ..state import MODE_OFFBOARD, VehicleError, VehicleState
 from ..vehicle import Vehicle
@@ -378,9 +378,8 @@ class FieldProgram:
             self._start_report(recorder.path, record)
 
     def _start_report(self, log_path: Path, record: dict) -> None:
-        """Draw the episode's report beside its log (``runtime.report``) on the report thread at
-        idle priority: the next episode may already be flying.  A failure is a warning, never the
-        flight's."""
+        """Draw the episode's report beside its log (``runtime.report``) on the report thread: the
+        next episode may already be flying.  A failure is a warning, never the flight's."""
         self._reports.submit(log_path, record)
 
     def _open_recorder(self, model: PolicyModel, episode: int) -> Recorder | None:
@@ -479,7 +478,7 @@ def run_fly(config_path: str | Path, print_json: bool = False, check_only: bool 
     notifier = SystemdNotifier() if config.systemd.notify else SystemdNotifier({})
     program = FieldProgram(config, notifier)
     try:
-        code = asyncio.run(_main(program))
+        code = run_bounded(_main(program))
     finally:
         ignore_stop_signals()
         notifier.stopping()

@@ -47,7 +47,7 @@ from ..flight import EpisodeResult, FlightLoop, log_task_failure, settle_heap
 from ..log.recorder import Recorder, RecorderError
 from ..model import ModelLoadError, PolicyModel, check_outputs_finite
 from ..service.affinity import prepare_control_process
-from ..service.shutdown import close_step, in_daemon_thread
+from ..service.shutdown import close_step, in_daemon_thread, run_bounded
 from ..service.signals import StopSignals, cancel_on_stop_signals, ignore_stop_signals
 from ..state import VehicleError, VehicleState
 from ..vehicle import Vehicle
@@ -254,7 +254,7 @@ def main(argv: list[str] | None = None) -> int:
         "watchdog_trips": [],
     }
     try:
-        code = asyncio.run(_main(args, summary))
+        code = run_bounded(_main(args, summary))
     finally:
         ignore_stop_signals()
     args.summary.parent.mkdir(parents=True, exist_ok=True)

@@ -1,4 +1,5 @@
-"""Flight reports drawn one after another on one long-lived daemon thread at idle priority.
+"""Flight reports drawn one after another on one long-lived daemon thread (at normal priority: a
+demoted thread holding the GIL stalls the control path, see ``runtime.service.affinity``).
 
 One thread for the program's life, not one per report: matplotlib caches its fonts per thread
 (``font_manager`` keeps an open-file cache keyed on the thread id), so a new thread per episode
@@ -13,7 +14,6 @@ import threading
 from collections.abc import Callable
 from pathlib import Path
 
-from ..service.affinity import run_as_background_thread
 from .render import report_paths, write_report_quietly
 
 log = logging.getLogger(__name__)
@@ -49,7 +49,6 @@ class ReportWorker:
         return list(self._futures)
 
     def _run(self, loop: asyncio.AbstractEventLoop) -> None:
-        run_as_background_thread()
         while (job := self._jobs.get()) is not None:
             draw, future = job
             try:

@@ -1,6 +1,13 @@
 """Pinning the runtime process to its CPUs (``runtime.cpu_affinity``; ``cmnav bench runtime``),
-and keeping the control path first on them: a short GIL switch interval, and background threads
-(the flight log's writer) scheduled only when the control path does not want the core.
+and keeping the control path first on them: a short GIL switch interval.
+
+No thread of the process is demoted (SCHED_IDLE, nice): the background threads (the flight log's
+writer, the report's drawing) hold the GIL while they work, and a demoted holder that loses its
+core to another process keeps the GIL until the scheduler runs it again, so the control path
+waits behind it (priority inversion).  Measured on this 2-core machine with a 2-thread training
+run on both cores: a 10 ms sleep loop with a pure-Python thread beside it woke up late by
+p99 1398 ms with that thread at SCHED_IDLE (798 ms with both pinned to one core), p50 30 ms at
+nice 10, p99 6.9 ms at normal priority (5.5 ms pinned) — the SITL flights' stale-frame trips.
 
 Linux applies ``sched_setaffinity`` to one thread; threads inherit their creator's affinity. A
 process that pins itself after start therefore pins every thread it already has (numpy's BLAS
@@ -33,18 +40,6 @@ def prepare_control_process(cpus: Iterable[int] | None) -> tuple[int, ...] | Non
     Runtime's and MAVSDK's threads exist.  Returns the pinned CPUs, or None when not pinned."""
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     return pin_process(cpus) if cpus else None
-
-
-def run_as_background_thread() -> bool:
-    """Make the calling thread yield its core to every other: SCHED_IDLE on Linux, which the
-    scheduler runs only when no normal thread wants that CPU.  For work off the control path
-    (the flight log's writer).  Returns whether it took effect (False where the OS lacks it)."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))  # 0: this thread, on Linux
-    except (AttributeError, OSError) as err:
-        log.debug("background thread stays at normal priority: %s", err)
-        return False
-    return True
 
 
 def pin_process(cpus: Iterable[int]) -> tuple[int, ...]:

@@ -18,7 +18,6 @@ import pytest
 from mcap.exceptions import EndOfFile, RecordLengthLimitExceeded
 from mcap.reader import NonSeekingReader
 
-from export.goal_seeker import export_goal_seeker
 from runtime.config import WatchdogConfig
 
 pytestmark = pytest.mark.timeout(150)
@@ -48,13 +47,6 @@ CASES = [
     # The vehicle brakes to a stop; the error passes the bound within a few tenths of a second.
     ("vehicle-stuck@2", "tracking", "hover_then_hold", 1000.0 * WATCHDOG.tracking_window_s, "LAND"),
 ]
-
-
-@pytest.fixture(scope="module")
-def goal_seeker(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("models") / "goal-seeker.onnx"
-    export_goal_seeker(str(path))
-    return path
 
 
 def _fly(model: Path, out: Path, inject: str) -> dict:

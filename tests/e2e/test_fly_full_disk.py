@@ -16,7 +16,6 @@ from pathlib import Path
 
 import pytest
 
-from export.goal_seeker import export_goal_seeker
 from sim.sitl_session import free_port
 from tests.e2e.fly_helpers import (
     READY_TIMEOUT_S, NotifyListener, Sitl, finish_fly, fly_config, pilot_rig, start_fly,
@@ -26,13 +25,6 @@ pytestmark = pytest.mark.timeout(180)
 
 NOTHING_FITS = 0
 ABOUT_A_SECOND_OF_LOG = 300_000  # bytes: the metadata fits, the camera frames soon do not
-
-
-@pytest.fixture(scope="module")
-def goal_seeker(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("models") / "goal-seeker.onnx"
-    export_goal_seeker(str(path))
-    return path
 
 
 def _dry_run(goal_seeker: Path, tmp_path: Path, limit_bytes: int, recorder: str = "") -> tuple[int, dict, str, dict]:

@@ -17,19 +17,11 @@ from pathlib import Path
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from export.goal_seeker import export_goal_seeker
 from runtime.programs.replay import replay_log
 from sim.sitl_session import free_port
 from tests.e2e.fly_helpers import READY_TIMEOUT_S, NotifyListener, Sitl, finish_fly, fly_config, pilot_rig, start_fly
 
 pytestmark = pytest.mark.timeout(180)
-
-
-@pytest.fixture(scope="module")
-def goal_seeker(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("models") / "goal-seeker.onnx"
-    export_goal_seeker(str(path))
-    return path
 
 
 def _near_goal(sitl: Sitl) -> list[float]:

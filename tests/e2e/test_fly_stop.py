@@ -21,7 +21,6 @@ import pytest
 from mcap.reader import make_reader
 from pymavlink import mavutil
 
-from export.goal_seeker import export_goal_seeker
 from sim.sitl.px4 import Px4Mode
 from sim.sitl_session import free_port
 from tests.e2e.fly_helpers import LOOPBACK, READY_TIMEOUT_S, NotifyListener, Sitl, finish_fly, fly_config, start_fly
@@ -31,13 +30,6 @@ pytestmark = pytest.mark.timeout(180)
 PHASE_TIMEOUT_S = 60.0
 OBSERVE_AFTER_EXIT_S = 2.5  # > COM_OF_LOSS_T (1 s) + one heartbeat period
 LANDED_TIMEOUT_S = 20.0
-
-
-@pytest.fixture(scope="module")
-def goal_seeker(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("models") / "goal-seeker.onnx"
-    export_goal_seeker(str(path))
-    return path
 
 
 def _wait(predicate, what: str, proc, tmp_path: Path) -> None:

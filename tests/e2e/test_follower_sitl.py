@@ -17,18 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from export.goal_seeker import export_goal_seeker
 from runtime.programs.replay import replay_log
 from sim.sitl_session import free_port, stop_process
 
 pytestmark = pytest.mark.timeout(300)
-
-
-@pytest.fixture(scope="module")
-def goal_seeker(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("models") / "goal-seeker.onnx"
-    export_goal_seeker(str(path))
-    return path
 
 
 def _fly(

@@ -18,12 +18,10 @@ from __future__ import annotations
 
 import re
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from export.goal_seeker import export_goal_seeker
 from runtime.config import WatchdogConfig
 from runtime.programs.replay import replay_log
 from sim.linkfault import DROP_FRAMES, PARTIAL_FRAME, RECONNECT, STALL, Impairment, StreamFault
@@ -34,13 +32,6 @@ pytestmark = pytest.mark.timeout(150)
 WATCHDOG = WatchdogConfig()
 COM_OF_LOSS_T_S = 1.0  # PX4's default offboard-loss time, as the SITL vehicle applies it
 NS_PER_MS = 1_000_000
-
-
-@pytest.fixture(scope="module")
-def goal_seeker(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("models") / "goal-seeker.onnx"
-    export_goal_seeker(str(path))
-    return path
 
 
 def _replays_completely(flight: LinkFlight) -> None:

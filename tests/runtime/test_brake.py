@@ -7,10 +7,8 @@ import asyncio
 import time
 
 import numpy as np
-import onnx
 import pytest
 
-from export.goal_seeker import build_goal_seeker
 from runtime.config import RecorderConfig, RuntimeConfig, WatchdogConfig
 from runtime.flight import FlightLoop
 from runtime.model import PolicyModel
@@ -63,13 +61,6 @@ class LaggingVehicle(KinematicVehicle):
         await super().stop_offboard()
 
 
-@pytest.fixture(scope="module")
-def goal_seeker(tmp_path_factory):
-    path = tmp_path_factory.mktemp("models") / "goal_seeker.onnx"
-    onnx.save(build_goal_seeker(), str(path))
-    return path
-
-
 async def _fly(model_path, vehicle, goal, timeout_s=20.0, brake_timeout_s=4.0, camera=None, brake_gain=1.0):
     config = RuntimeConfig(watchdog=WatchdogConfig(hold_grace_s=0.3, brake_timeout_s=brake_timeout_s, brake_gain=brake_gain),
                            recorder=RecorderConfig(log_dir=None))  # fmt: skip
@@ -89,7 +80,7 @@ def test_success_holds_only_once_the_vehicle_has_stopped(goal_seeker):
     result = asyncio.run(_fly(goal_seeker, vehicle, START + np.array([4.0, 0.0, 0.0]), brake_gain=0.0))
     assert result.outcome == "success", result
     assert vehicle.holds == 1 and vehicle.speed_at_hold < 0.2
-    assert result.brake["ended"] == "stopped" and result.brake["speed_at_hold_m_s"] < 0.2
+    assert result.brake["ended"] == "stopped" and result.brake["speed_at_hold_m_s"] <= 0.2  # 3 decimals: 0.19999 reads 0.2
     # It arrived at cruise speed and a first-order lag of 0.8 s needs over a second to shed it.
     assert result.brake["duration_s"] > 0.3 + BRAKE_TAU_S
 

@@ -5,10 +5,8 @@ import gc
 import time
 
 import numpy as np
-import onnx
 import pytest
 
-from export.goal_seeker import build_goal_seeker
 from runtime.camera import Frame
 from runtime.config import RecorderConfig, RuntimeConfig, WatchdogConfig
 from runtime.contract import HOVER, CONTROL_PERIOD_S, mavsdk_to_velocity_flu
@@ -18,6 +16,10 @@ from runtime.model import PolicyModel
 from runtime.log.recorder import Recorder
 from runtime.state import VehicleHealth, VehicleState
 from tests.runtime.onnx_models import save, step_model
+
+# Real-time episodes (the loop's 15 Hz clock and its deadlines): with the SITL flights, never beside
+# the computing tests (`make test`), whose load once stretched a step past its deadline here.
+pytestmark = pytest.mark.flight
 
 HOME = np.array([0.0, 0.0, 0.0])
 START = np.array([1.0, 1.0, 1.5])
@@ -116,13 +118,6 @@ async def _fly(model_path, goal, timeout_s, camera=None, during=None, recorder=N
         await loop.close()
         vehicle._task.cancel()
     return result, vehicle
-
-
-@pytest.fixture(scope="module")
-def goal_seeker(tmp_path_factory):
-    path = tmp_path_factory.mktemp("models") / "goal_seeker.onnx"
-    onnx.save(build_goal_seeker(), str(path))
-    return path
 
 
 def test_reaches_goal_then_hover_and_hold(goal_seeker, tmp_path):

@@ -4,7 +4,6 @@ up to ~1.1 m, and goals lie 0.5-1 m from a wall.  The path geometry, then the fl
 vehicle that lags like PX4."""
 
 import asyncio
-import math
 import time
 
 import numpy as np
@@ -15,7 +14,7 @@ from runtime.model import PolicyModel
 from runtime.contract import CONTROL_PERIOD_S
 from runtime.flight import RETREAT_TIME_MARGIN_S, FlightLoop
 from runtime.watchdog import RETREAT_MAX_SPEED_M_S, RETREAT_SPEED_M_S, RetreatTracker, retreat_path
-from tests.runtime.test_brake import LaggingVehicle, goal_seeker  # noqa: F401 (the fixture)
+from tests.runtime.test_brake import LaggingVehicle
 from tests.runtime.test_flight_loop import START, FakeCamera
 
 
@@ -81,7 +80,7 @@ async def _fly_and_retreat(model_path, vehicle, goal, retreat_m, camera=None):
 
 
 @pytest.mark.flight
-def test_a_goal_reached_is_followed_by_the_retreat_then_hold(goal_seeker):  # noqa: F811
+def test_a_goal_reached_is_followed_by_the_retreat_then_hold(goal_seeker):
     vehicle = LaggingVehicle()
     goal = START + np.array([4.0, 0.0, 0.0])
     result, at_hold, _ = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, goal, 1.5))
@@ -90,11 +89,12 @@ def test_a_goal_reached_is_followed_by_the_retreat_then_hold(goal_seeker):  # no
     assert retreat["ended"] == "arrived" and retreat["retreated_m"] > 1.2, result.brake
     # Back along the way it came (it flew +x from START), at the height it flew, stopped before Hold.
     assert at_hold[0] < goal[0] - 1.0 - 1.2 + 0.5 and abs(at_hold[1] - START[1]) < 0.2 and abs(at_hold[2] - START[2]) < 0.2
-    assert vehicle.holds == 1 and vehicle.speed_at_hold < 0.2 and result.brake["speed_at_hold_m_s"] < 0.2
+    # The record keeps 3 decimals: a speed of 0.19999 m/s (seen once) is recorded as 0.2.
+    assert vehicle.holds == 1 and vehicle.speed_at_hold < 0.2 and result.brake["speed_at_hold_m_s"] <= 0.2
 
 
 @pytest.mark.flight
-def test_the_retreat_holds_the_height_it_stopped_at_not_the_paths(goal_seeker):  # noqa: F811
+def test_the_retreat_holds_the_height_it_stopped_at_not_the_paths(goal_seeker):
     vehicle = LaggingVehicle()
     goal = START + np.array([4.0, 0.0, -1.0])  # the path comes down to the goal
     result, at_hold, _ = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, goal, 1.5))
@@ -103,7 +103,7 @@ def test_the_retreat_holds_the_height_it_stopped_at_not_the_paths(goal_seeker): 
 
 
 @pytest.mark.flight
-def test_a_timeout_or_a_trip_lands_where_it_stopped(goal_seeker):  # noqa: F811
+def test_a_timeout_or_a_trip_lands_where_it_stopped(goal_seeker):
     vehicle = LaggingVehicle()
     result, _, _ = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, START + np.array([15.0, 0.0, 0.0]), 1.5,
                                              camera=FakeCamera(stop_after_s=1.0)))  # fmt: skip
@@ -111,7 +111,7 @@ def test_a_timeout_or_a_trip_lands_where_it_stopped(goal_seeker):  # noqa: F811
 
 
 @pytest.mark.flight
-def test_a_stale_estimate_ends_the_retreat_into_the_brake_and_hold(goal_seeker):  # noqa: F811
+def test_a_stale_estimate_ends_the_retreat_into_the_brake_and_hold(goal_seeker):
     class EstimateDiesAfterTheBrake(LaggingVehicle):
         def state(self):
             s = super().state()
@@ -126,7 +126,7 @@ def test_a_stale_estimate_ends_the_retreat_into_the_brake_and_hold(goal_seeker):
 
 
 @pytest.mark.flight
-def test_a_pilot_taking_over_during_the_retreat_gets_the_vehicle_and_no_hold(goal_seeker, monkeypatch):  # noqa: F811
+def test_a_pilot_taking_over_during_the_retreat_gets_the_vehicle_and_no_hold(goal_seeker, monkeypatch):
     class PilotTakesOverWhileRetreating(LaggingVehicle):
         retreating = False
 

@@ -97,3 +97,38 @@ def test_process_exits_despite_a_teardown_that_never_returns():
     assert "closed False" in proc.stdout
     assert "closing MAVSDK took over 0.5 s" in proc.stderr
     assert 'Thread' in proc.stderr and "in wait" in proc.stderr  # faulthandler's stacks name the hung thread's frame
+
+
+def test_a_step_slow_to_honour_its_cancellation_is_left_behind_and_the_process_exits():
+    """A teardown step that answers its cancellation by awaiting more (a driver closing its own
+    I/O) once held `cmnav fly` past the timeout: asyncio.wait_for waits for the cancelled step.
+    close_step leaves it behind at its timeout, and run_bounded (the programs' asyncio.run) gives
+    such leftovers a bounded time at exit."""
+    script = textwrap.dedent(
+        """
+        import asyncio, time
+        from runtime.service.shutdown import close_step, run_bounded
+
+        async def deaf():
+            while True:
+                try:
+                    await asyncio.sleep(3600)
+                except asyncio.CancelledError:
+                    continue  # ignores every cancellation
+
+        async def main():
+            t0 = time.monotonic()
+            done = await close_step("the camera", deaf, 0.3)
+            print("closed", done, round(time.monotonic() - t0, 1), flush=True)
+            return 3
+
+        print("code", run_bounded(main(), leftover_timeout_s=0.5), flush=True)
+        """
+    )
+    t0 = time.monotonic()
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert "closed False 0.3" in proc.stdout and "code 3" in proc.stdout
+    assert "closing the camera took over 0.3 s: abandoned" in proc.stderr
+    assert "did not end 0.5 s after its cancellation: left behind at exit" in proc.stderr
+    assert time.monotonic() - t0 < 30.0

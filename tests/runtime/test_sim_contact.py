@@ -9,7 +9,7 @@ import pytest
 
 from runtime.camera import Frame
 from runtime.contract import CONTROL_PERIOD_S, HOVER
-from tests.runtime.test_flight_loop import START, FakeCamera, _fly, goal_seeker  # noqa: F401 (fixture)
+from tests.runtime.test_flight_loop import START, FakeCamera, _fly
 
 
 class ContactCamera(FakeCamera):
@@ -32,7 +32,7 @@ class ContactCamera(FakeCamera):
             await asyncio.sleep(CONTROL_PERIOD_S)
 
 
-def test_contact_reported_by_the_world_trips_hover_then_hold(goal_seeker):  # noqa: F811
+def test_contact_reported_by_the_world_trips_hover_then_hold(goal_seeker):
     goal = START + np.array([15.0, 0.0, 0.0])  # never reached
     result, vehicle = asyncio.run(_fly(goal_seeker, goal, 20.0, camera=ContactCamera(contact_after_s=0.8)))
     assert result.outcome == "aborted" and result.abort_reason == "sim_contact"

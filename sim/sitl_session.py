@@ -128,6 +128,7 @@ class SitlRequest:
     out_dir: Path
     injections: tuple[Injection, ...] = ()
     degrade: str = "none"
+    estimate: str = "exact"  # our SITL vehicle's state estimate (sim.sitl.estimate.ESTIMATES)
     # Pinning (cmnav bench runtime): the runtime process pins itself (runtime.cpu_affinity) and
     # runs ONNX Runtime with runtime_threads intra-op threads; the vehicle is started pinned.
     runtime_cpus: tuple[int, ...] = ()
@@ -306,7 +307,7 @@ def _start_world(
                    "--episode-json", str(episode_path), "--trace", str(trace_path), "--status-json", str(status_path)]  # fmt: skip
     if request.autopilot_url is None:
         command = [sys.executable, "-m", "sim.sitl", "--mavlink-port", str(mavlink_port), "--camera-port", str(camera_port),
-                   *world_files, *request.injections_at(FaultSite.VEHICLE)]  # fmt: skip
+                   "--estimate", request.estimate, *world_files, *request.injections_at(FaultSite.VEHICLE)]  # fmt: skip
     else:  # the vehicle's faults that reach the follower are the camera's (autopilot_request refuses the rest)
         command = [sys.executable, "-m", "sim.follower", "--autopilot", request.autopilot_url,
                    *(["--allow-remote"] if request.allow_remote else []), "--camera-port", str(camera_port), *world_files,
@@ -468,8 +469,9 @@ def crash_timing(collision: dict, flight: dict, t_offboard: float | None) -> tup
 
 def autopilot_request(request: SitlRequest, url: str, offboard_port: int | None, allow_remote: bool) -> SitlRequest:
     """``request`` flown against an external autopilot: ValueError (naming the option) for a URL
-    it refuses (another host without ``allow_remote``), a bad port, or a fault only our vehicle
-    can inject (the world follower injects the camera faults: ``sim.follower.faults``)."""
+    it refuses (another host without ``allow_remote``), a bad port, a fault only our vehicle can
+    inject (the world follower injects the camera faults: ``sim.follower.faults``), or our
+    vehicle's ``estimate``."""
     parse_autopilot_url(url, allow_remote)
     port = SitlRequest.offboard_port if offboard_port is None else offboard_port
     if not 0 < port < 65536:
@@ -477,6 +479,8 @@ def autopilot_request(request: SitlRequest, url: str, offboard_port: int | None,
     for injection in request.injections:
         if (problem := follower_injection_problem(injection)) is not None:
             raise ValueError(problem)
+    if request.estimate != "exact":
+        raise ValueError("--estimate is our SITL vehicle's; with --autopilot the autopilot has its own")
     return replace(request, autopilot_url=url, offboard_port=port, allow_remote=allow_remote)
 
 
@@ -498,7 +502,8 @@ def run_sitl_cli(args: argparse.Namespace) -> int:
     except ValueError as err:
         print(f"cmnav sitl: {err}", file=sys.stderr)
         return 2
-    request = SitlRequest(Path(args.model), args.level, args.seed, args.timeout, Path(args.out), injections, args.degrade)
+    request = SitlRequest(Path(args.model), args.level, args.seed, args.timeout, Path(args.out), injections, args.degrade,
+                          estimate=getattr(args, "estimate", "exact"))  # fmt: skip
     if getattr(args, "autopilot", None) is not None:
         try:
             request = autopilot_request(request, args.autopilot, args.offboard_port, args.allow_remote)

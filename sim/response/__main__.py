@@ -1,5 +1,5 @@
-"""``python -m sim.response fly|fit``: fly the identification sequence on an autopilot, or fit
-the recorded runs and compare them (see the package doc)."""
+"""``python -m sim.response fly|fit|replay``: fly the identification sequence on an autopilot, fit
+the recorded runs and compare them, or read recorded policy flights back (see the package doc)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,11 @@ from pathlib import Path
 
 from runtime.state import VehicleError
 
+from sim.dynamics import PX4_SIH_V1_16
+
 from .flight import ENDINGS, fly_sequence
 from .identify import compare_table, identify
+from .replay import REFERENCES, FlightRecordError, estimate_error, load_flights, replay_error
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -27,6 +30,11 @@ def main(argv: list[str] | None = None) -> int:
     fit = sub.add_parser("fit", help="identify each run's response and print them side by side")
     fit.add_argument("runs", type=Path, nargs="+", metavar="NAME=RUN.json", help="runs written by `fly`, each named")
     fit.add_argument("-o", "--out", type=Path, help="also write the identified parameters as JSON")
+    replay = sub.add_parser("replay", help="recorded `cmnav sitl --autopilot` flights: the autopilot's estimate against the "
+                            "ground truth, and sim.dynamics.PX4_SIH_V1_16 replayed on the commands sent")  # fmt: skip
+    replay.add_argument("runs", type=Path, nargs="+", metavar="DIR", help="run directories, or campaign directories (their runs/*)")
+    replay.add_argument("--horizon-s", type=float, default=1.0, help="how far each replayed window flies (default 1 s)")
+    replay.add_argument("-o", "--out", type=Path, help="also write the result as JSON")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if args.command == "fly":
@@ -39,6 +47,8 @@ def main(argv: list[str] | None = None) -> int:
         args.out.write_text(json.dumps(run))
         print(f"run written to {args.out}: {len(run['samples']['t_s'])} samples, end {run['end']}")
         return 0
+    if args.command == "replay":
+        return _replay(args)
     identified = {}
     for named in args.runs:
         name, sep, path = str(named).partition("=")
@@ -52,6 +62,29 @@ def main(argv: list[str] | None = None) -> int:
     print(compare_table(identified))
     if args.out is not None:
         args.out.write_text(json.dumps(identified, indent=2))
+    return 0
+
+
+def _replay(args: argparse.Namespace) -> int:
+    try:
+        flights = load_flights(args.runs)
+        result = {"estimate_error": estimate_error(flights),
+                  "replay": {ref: replay_error(flights, PX4_SIH_V1_16, ref, args.horizon_s) for ref in REFERENCES}}  # fmt: skip
+    except (FlightRecordError, OSError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    err = result["estimate_error"]
+    print(f"{err['flights']} flights, {err['samples']} estimates in offboard; estimate - truth (x, y, z):")
+    for key, label in (("bias_sd", "per-flight mean, sd over flights"), ("within_flight_sd", "about it, within a flight (sd)")):
+        print(f"  {label}: position {err[key]['position_m']} m, velocity {err[key]['velocity_m_s']} m/s")
+    for lag, values in err["autocorrelation"].items():
+        print(f"  autocorrelation at {lag} s: position {values['position_m']}, velocity {values['velocity_m_s']}")
+    for ref, rep in result["replay"].items():
+        for at_s, e in rep["at_s"].items():
+            print(f"PX4_SIH_V1_16 replayed against the {ref}, {at_s} s ahead ({rep['windows']} windows): "
+                  f"RMS forward/left/up {e['rms'][:3]} m/s, heading {e['rms'][3]} rad")  # fmt: skip
+    if args.out is not None:
+        args.out.write_text(json.dumps(result, indent=2))
     return 0
 
 

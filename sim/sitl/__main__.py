@@ -11,6 +11,7 @@ from runtime.faults.catalogue import FaultSite, parse_injection
 
 from .camera_server import CameraPortError
 from .camera_feed import DEPTH_MODES
+from .estimate import ESTIMATES
 from .vehicle import DYNAMICS, SitlConfig, SitlVehicle, start_world_process
 
 log = logging.getLogger("sim.sitl")
@@ -54,13 +55,17 @@ def parse_args(argv: list[str] | None = None) -> SitlConfig:
     parser.add_argument("--dynamics", choices=sorted(DYNAMICS), default=SitlConfig.dynamics,
                         help="the velocity response: px4 (PX4 v1.16 SIH as identified: delays, ~0.8 of a commanded "
                         "speed, creep after a stop) or ideal (the batched training sim's vehicle) (default px4)")
+    parser.add_argument("--estimate", choices=ESTIMATES, default=SitlConfig.estimate,
+                        help="what the autopilot knows of its state: exact (the truth) or px4 (PX4 SIH's EKF2 as measured: "
+                        "biased, drifting; reported over MAVLink and flown, so the vehicle slides by its velocity error; "
+                        "the camera sees the truth) (default exact)")  # fmt: skip
     args = parser.parse_args(argv)
     try:
         injections = tuple(parse_injection(text, [FaultSite.VEHICLE]) for text in args.inject)
         config = SitlConfig(
             args.mavlink_port, args.camera_port, args.level, args.seed, args.episode_json, args.trace,
             args.physics_hz, args.camera_hz, injections, args.status_json, args.degrade, args.stand_in, args.pose_port,
-            args.heading_deg, args.boot_time_scale, args.dynamics,
+            args.heading_deg, args.boot_time_scale, args.dynamics, args.estimate,
         )  # fmt: skip
         config.validate()
     except ValueError as err:  # InjectionError is one

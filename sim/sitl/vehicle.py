@@ -34,9 +34,11 @@ from .autopilot import Autopilot
 from .camera_feed import DEPTH_MODES, CameraFeed
 from .camera_server import FrameServer
 from .commander import Commander
+from .estimate import ESTIMATES, SitlEstimate
 from .faults import VehicleFaults
 from .flight_tasks import VelocityCommand
 from .geodetic import GeodeticHome
+from .kinematics import Kinematics
 from .mavlink_endpoint import COMPONENT_ID, SYSTEM_ID, MavlinkEndpoint
 from .mission import MissionServer
 from .params import ParamTable
@@ -88,9 +90,14 @@ class SitlConfig:
     # The velocity response: "px4" (PX4 v1.16 SIH as identified, sim.dynamics.PX4_SIH_V1_16) or
     # "ideal" (the batched sim's vehicle the shipped policies were trained on).
     dynamics: str = "px4"
+    # What the autopilot knows of its state: "exact" (the truth) or "px4" (PX4 SIH's EKF2 as
+    # measured, and flown: sim.sitl.estimate).
+    estimate: str = "exact"
 
     def validate(self) -> None:
         """Raise ValueError naming the bad option."""
+        if self.estimate not in ESTIMATES:
+            raise ValueError(f"--estimate {self.estimate!r} must be one of {', '.join(ESTIMATES)}")
         if self.degrade not in DEPTH_MODES:
             raise ValueError(f"--degrade {self.degrade!r} must be one of {', '.join(DEPTH_MODES)}")
         if self.dynamics not in DYNAMICS:
@@ -125,7 +132,8 @@ class SitlVehicle:
         self._airframe = Airframe(self._world, start[:2], yaw_enu_rad=math.radians(config.heading_deg),
                                   params=DYNAMICS[config.dynamics], world_contact=not config.stand_in)  # fmt: skip
         self._home_enu_m = self._airframe.home_enu_m
-        self._kin = self._airframe.kinematics(self._t_boot_ns)
+        self._kin = self._airframe.kinematics(self._t_boot_ns)  # the truth: camera, trace, contacts
+        self._estimate = None if config.estimate == "exact" else SitlEstimate(self._kin, 1.0 / config.physics_hz, config.seed)
         geo = GeodeticHome()
         params = ParamTable(takeoff_alt_m=float(start[2] - self._home_enu_m[2]))
         self._faults = VehicleFaults(config.injections, config.seed)
@@ -217,6 +225,11 @@ class SitlVehicle:
                 log.warning("physics loop %.0f ms behind real time; re-phasing (overrun %d)", lag_s * 1e3, self.overruns)
                 next_s = time.monotonic()
 
+    @property
+    def _known(self) -> Kinematics:
+        """What the autopilot knows of its state: the truth, or its estimate (``--estimate``)."""
+        return self._kin if self._estimate is None else self._estimate.kinematics
+
     def _endpoints(self) -> list[MavlinkEndpoint]:
         return [self._endpoint] if self._pose_endpoint is None else [self._endpoint, self._pose_endpoint]
 
@@ -227,25 +240,29 @@ class SitlVehicle:
                 for msg in endpoint.receive():
                     if endpoint is self._endpoint and self._mission.handle(msg, t_s):
                         continue
-                    autopilot.handle(msg, self._kin, t_s)
+                    autopilot.handle(msg, self._known, t_s)
 
     def _tick(self, dt_s: float) -> None:
         t_ns = time.monotonic_ns()
         t_s = t_ns * 1e-9
-        self._commander.update(t_s, self._kin)
+        self._commander.update(t_s, self._known)
         self._apply_faults(t_s)
-        command = self._commander.velocity_command(t_s, self._kin) if self._commander.armed else None
+        command = self._commander.velocity_command(t_s, self._known) if self._commander.armed else None
         if command is not None and self._commander.mode == OFFBOARD and self._faults.stuck(t_s):
             command = STUCK_COMMAND
+        if command is not None and self._estimate is not None and not self._kin.on_ground:
+            command = self._estimate.flown(command)
         hit = self._airframe.step(command, dt_s)
         self._kin = self._airframe.kinematics(t_ns)
+        if self._estimate is not None:
+            self._estimate.update(self._kin)
         if hit is not None:
             self._commander.crash(t_s, hit)
             self._trace.record_collision(t_s, self._kin.pos_enu_m, hit)
-        events = self._autopilot.publish(self._kin, t_s)
+        events = self._autopilot.publish(self._known, t_s)
         self._mission.update(t_s)
         if self._pose_autopilot is not None:
-            self._pose_autopilot.publish(self._kin, t_s, events)
+            self._pose_autopilot.publish(self._known, t_s, events)
         self._trace.record_events(events)
         self._trace.sample(t_s, self._kin.pos_enu_m, self._kin.vel_enu_m_s, self._kin.yaw_enu_rad)
         if len(self._commander.mode_log) != self._modes_reported:

@@ -13,6 +13,8 @@ log = logging.getLogger("cmnav")
 # sim.sitl.camera_feed.DEPTH_MODES, spelled here so that building the parser imports no torch
 # (tests/cmnav/test_cli_args.py holds them equal).
 SITL_DEPTH_MODES = ("none", "projector-off", "stereo", "stereo-projector-off")
+VEHICLE_CHOICES = ("ideal", "px4")  # training.policy.field.VEHICLES, likewise
+SITL_ESTIMATES = ("exact", "px4")  # sim.sitl.estimate.ESTIMATES, likewise
 
 
 def _cmd_sitl(args: argparse.Namespace) -> int:
@@ -202,17 +204,17 @@ def _policy_train_config(args: argparse.Namespace, encoder_dir: str | None, corr
         ppo=PpoConfig(**_given(args, "minibatches", "lr", rollout_steps="rollout")),
         curriculum=CurriculumConfig(**_given(args, "start_level", "max_level", window_episodes="curriculum_window")),
         resume=args.resume, init_from=args.init_from, max_wall_s=None if args.minutes is None else args.minutes * 60.0,
-        **_given(args, "device", "seed", "checkpoint_every", "precision", num_envs="envs", env_steps="steps"),
+        **_given(args, "device", "seed", "checkpoint_every", "precision", "vehicle", "end_at_goal", num_envs="envs",
+                 env_steps="steps"),
     )  # fmt: skip
 
 
 def _cmd_train_policy(args: argparse.Namespace) -> int:
     if args.teacher is not None:
         return _train_student(args)
-    for flag, given in (("--field", args.field), ("--vehicle", args.vehicle)):
-        if given:
-            print(f"cmnav train policy: {flag} trains a student by DAgger: give --teacher TEACHER_DIR", file=sys.stderr)
-            return 2
+    if args.field:
+        print("cmnav train policy: --field trains a student by DAgger: give --teacher TEACHER_DIR", file=sys.stderr)
+        return 2
     from training.policy.train import train_policy
 
     out = train_policy(_policy_train_config(args, args.encoder, args.corruption))
@@ -230,7 +232,7 @@ def _train_student(args: argparse.Namespace) -> int:
         max_wall_s=None if args.minutes is None else args.minutes * 60.0,
         **_given(args, "device", "seed", "corruption", "minibatches", "min_level", "max_level", "checkpoint_every", "precision",
                  "lr", "beta_start", "beta_decay_env_steps", "projector_off_episode_fraction", "near_weight", "near_m",
-                 "vehicle", "field_depth", num_envs="envs", rollout_steps="rollout", env_steps="steps", field_conditions="field"),
+                 "vehicle", "end_at_goal", "field_depth", num_envs="envs", rollout_steps="rollout", env_steps="steps", field_conditions="field"),
     )  # fmt: skip
     out = train_dagger(config)
     print(f"student checkpoint in {out}")
@@ -416,6 +418,10 @@ def build_parser() -> argparse.ArgumentParser:
                       help="depth of the SITL camera: rendered (none), with a D455's losses without its IR projector "
                       "(projector-off, about a quarter lost), or the simulated D455's stereo depth matched from rendered "
                       "IR images, projector on or off (stereo, stereo-projector-off; ~40 ms a frame of one core)")  # fmt: skip
+    sitl.add_argument("--estimate", default="exact", choices=SITL_ESTIMATES,
+                      help="what our SITL vehicle's autopilot knows of its state: exact (the truth) or px4 (PX4 SIH's "
+                      "EKF2 as measured, biased and drifting, reported to the runtime and flown: the vehicle slides by "
+                      "its velocity error as PX4 SIH's did; the camera sees the truth) (default exact)")  # fmt: skip
     sitl.add_argument(
         "--inject", action="append", default=[], metavar="KIND@SECONDS",
         help="inject a fault SECONDS after offboard start (repeatable): camera-stall, camera-garbage, "
@@ -581,6 +587,18 @@ def build_parser() -> argparse.ArgumentParser:
     add_precision(cmwae)
     cmwae.set_defaults(func=_cmd_train_cmwae)
 
+    def add_vehicle_option(command: argparse.ArgumentParser, *fields: str) -> None:
+        _config_option(command, "--vehicle", *fields, choices=VEHICLE_CHOICES,
+                       help="the vehicle flown: ideal (commands followed at once) or px4 (PX4 v1.16's identified response "
+                       "with its delays, image-to-command latency and EKF2-like estimates, randomized per episode: Table "
+                       "II's `px4`; a teacher still observes the true state)")  # fmt: skip
+
+    def add_end_at_goal_option(command: argparse.ArgumentParser, *fields: str) -> None:
+        _config_option(command, "--end-at-goal", *fields, action="store_true",
+                       help="end each episode in success at its first step within 1 m of the goal, as `cmnav fly` does, "
+                       "paid the reward of hovering on the goal for the steps left (default: the paper's 10 s episodes, "
+                       "success if within 1 m at the end); Table II keeps the paper's rule and counts `reached` beside it")  # fmt: skip
+
     def add_ppo_options(command: argparse.ArgumentParser, student: bool, envs: int | None = None) -> None:
         """The options of `train policy` (PPO, or DAgger with --teacher: ``student``) and `train teacher`;
         ``envs``: the command's own default number of envs (None: the config's)."""
@@ -649,10 +667,8 @@ def build_parser() -> argparse.ArgumentParser:
     _config_option(policy, "--field-depth", "training.policy.dagger:DaggerConfig.field_depth", choices=("stereo", "approx"),
                    help="DAgger --field: the depth trained on: the simulated D455's stereo matching, or its parametric "
                    "stand-in (sim.sensor.approx, its error against stereo in docs/sensor.md; 3x the env-steps/s)")  # fmt: skip
-    _config_option(policy, "--vehicle", "training.policy.dagger:DaggerConfig.vehicle", choices=("ideal", "px4"),
-                   help="DAgger: the vehicle the student flies: ideal (commands followed at once) or px4 (PX4 v1.16's "
-                   "identified response with its delays, image-to-command latency and EKF2-like estimates, randomized "
-                   "per episode: Table II's `px4`)")  # fmt: skip
+    add_vehicle_option(policy, "training.policy.dagger:DaggerConfig.vehicle", "training.policy.train:PolicyTrainConfig.vehicle")
+    add_end_at_goal_option(policy, "training.policy.dagger:DaggerConfig.end_at_goal", "training.policy.train:PolicyTrainConfig.end_at_goal")
     _config_option(policy, "--min-level", "training.policy.dagger:DaggerConfig.min_level", type=int,
                    help="DAgger: the lowest obstacle level; each episode's level is drawn uniformly from "
                    "[--min-level, --max-level]")  # fmt: skip
@@ -672,6 +688,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_ppo_options(teacher, student=False, envs=1024)
     teacher.add_argument("--init-from", metavar="TEACHER_DIR", help="start from this teacher checkpoint")
+    add_vehicle_option(teacher, "training.policy.train:PolicyTrainConfig.vehicle")
+    add_end_at_goal_option(teacher, "training.policy.train:PolicyTrainConfig.end_at_goal")
     teacher.set_defaults(func=_cmd_train_teacher, precision=None)
 
     evaluate = sub.add_parser("eval", help="evaluate a trained encoder (Table I) or policy (Table II)")

@@ -45,6 +45,9 @@ EXTRA_FROM_RUNTIME = {
     # The identification sequence flies through the runtime's own MAVSDK adapter: the command
     # path the runtime flies, on PX4 and on our vehicle alike.
     "sim.response.flight": ("runtime.vehicle",),
+    # Recorded PX4 flights are read back with the flight log's one reader (its cut-file and
+    # contract-version checks included), not a second copy of the format.
+    "sim.response.replay": ("runtime.log.reader",),
 }
 
 

@@ -35,6 +35,13 @@ def test_sitl_ranges_are_checked_before_any_process_starts(model, tmp_path, args
     assert not out.exists()
 
 
+def test_sitl_estimate_is_our_vehicles_not_an_external_autopilots(model, tmp_path):
+    out = tmp_path / "runs"
+    proc = _cmnav("sitl", "--model", str(model), "--out", str(out), "--estimate", "px4", "--autopilot", "udp://127.0.0.1:14550")
+    assert proc.returncode == 2 and "--estimate is our SITL vehicle's" in proc.stderr, proc.stderr
+    assert not out.exists()
+
+
 def test_sitl_out_that_is_a_file_is_refused(model, tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("not a directory")
@@ -63,3 +70,17 @@ def test_the_sitl_depth_modes_are_the_camera_feeds():
     from sim.sitl.camera_feed import DEPTH_MODES
 
     assert SITL_DEPTH_MODES == DEPTH_MODES
+
+
+def test_the_sitl_estimates_are_the_vehicles():
+    from cmnav.cli import SITL_ESTIMATES
+    from sim.sitl.estimate import ESTIMATES
+
+    assert SITL_ESTIMATES == ESTIMATES
+
+
+def test_the_vehicle_choices_are_trainings():
+    from cmnav.cli import VEHICLE_CHOICES
+    from training.policy.field import VEHICLES
+
+    assert VEHICLE_CHOICES == VEHICLES

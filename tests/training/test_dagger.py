@@ -55,11 +55,28 @@ def test_a_tiny_teacher_trains_on_the_low_resolution_env_and_is_evaluated_alone(
     assert card["config"]["obs_dim"] == NavEnvConfig().privileged_obs_dim == STATE_DIM + 32 * 18
     assert card["step"] == 512
     stdout, _ = _cmnav("eval", "policy", "--policy", str(trained / "teacher"), "--episodes", "2", "--levels", "0",
-                       "--batch-envs", "2", "--out", str(tmp_path), "--json")  # fmt: skip
+                       "--batch-envs", "2", "--conditions", "clean,corrupted,px4", "--out", str(tmp_path), "--json")  # fmt: skip
     result = json.loads(stdout.strip().splitlines()[-1])
-    assert result["role"] == "teacher" and [c["condition"] for c in result["cells"]] == ["clean"]  # it sees clean depth only
+    # It sees clean depth only: the rows whose depth is clean (px4 changes the vehicle alone).
+    assert result["role"] == "teacher" and [c["condition"] for c in result["cells"]] == ["clean", "px4"]
     with pytest.raises(ExportError, match="privileged teacher"):
         export_policy(trained / "enc", trained / "teacher", tmp_path / "t.onnx", random_samples=1)
+
+
+def test_a_teacher_trains_on_px4s_response_and_resumes_only_on_it(tmp_path):
+    out = tmp_path / "teacher-px4"
+    _cmnav(*TEACHER, "--out", str(out), "--steps", "256", "--vehicle", "px4", "--end-at-goal")
+    card = json.loads((out / "model.json").read_text())
+    assert card["meta"]["train"]["vehicle"] == "px4" and load_train_state(out)["vehicle"] == "px4"
+    assert card["meta"]["train"]["end_at_goal"] is True and load_train_state(out)["end_at_goal"] is True
+    for given, refusal in (((), "trained on the px4 vehicle, but --vehicle ideal"),
+                           (("--vehicle", "px4"), "trained with episodes ending at the goal, but --end-at-goal was not given")):
+        proc = subprocess.run([sys.executable, "-m", "cmnav", *TEACHER, "--out", str(out), "--steps", "512", "--resume", *given],
+                              capture_output=True, text=True, timeout=280)  # fmt: skip
+        assert proc.returncode != 0 and refusal in proc.stderr, proc.stderr[-2000:]
+        assert "Traceback" not in proc.stderr
+    _cmnav(*TEACHER, "--out", str(out), "--steps", "512", "--resume", "--vehicle", "px4", "--end-at-goal")
+    assert json.loads((out / "model.json").read_text())["step"] == 512
 
 
 class ScriptedTeacher(nn.Module):
@@ -213,6 +230,11 @@ def test_the_distilled_student_exports_and_the_runtime_loads_it(trained, tmp_pat
            "--size", "tiny", "--envs", "4", "--rollout", "8", "--minibatches", "2", "--steps", "96", "--precision", "fp32",
            "--beta-decay-env-steps", "32", "--resume", "--lr", "1e-4", "--min-level", "2", "--near-weight", "3")  # fmt: skip
     assert load_train_state(out)["optimizer"]["param_groups"][0]["lr"] == pytest.approx(1e-4)
+    assert load_train_state(out)["vehicle"] == "ideal"
+    proc = subprocess.run([sys.executable, "-m", "cmnav", "train", "policy", "--teacher", str(trained / "teacher"), "--encoder",
+                           str(trained / "enc"), "--out", str(out), "--size", "tiny", "--envs", "4", "--steps", "128",
+                           "--resume", "--vehicle", "px4"], capture_output=True, text=True, timeout=280)  # fmt: skip
+    assert proc.returncode != 0 and "trained on the ideal vehicle, but --vehicle px4" in proc.stderr
     card = json.loads((out / "model.json").read_text())
     assert card["meta"]["train"]["min_level"] == 2 and card["meta"]["train"]["near_weight"] == 3.0
     assert card["meta"]["role"] == "policy" and card["meta"]["algorithm"] == "dagger"

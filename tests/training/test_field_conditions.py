@@ -152,7 +152,7 @@ def test_field_config_limits_errors_name_the_key_and_the_fix(tmp_path):
 def test_state_estimate_is_the_truth_delayed_plus_bias_and_noise():
     dt_s = CONTROL_PERIOD_S / 7
     n = 256
-    config = StateEstimateConfig(delay_range_s=(3 * dt_s, 3 * dt_s))
+    config = StateEstimateConfig(delay_range_s=(3 * dt_s, 3 * dt_s), position_drift_m=(0.0, 0.0), velocity_drift_m_s=(0.0, 0.0))
     estimator = StateEstimator(config, n, dt_s)
     gen = torch.Generator().manual_seed(0)
     pos = torch.zeros(n, 3)
@@ -162,28 +162,74 @@ def test_state_estimate_is_the_truth_delayed_plus_bias_and_noise():
     for i in range(1, 9):  # the vehicle moves 1 m along x per physics step
         state = QuadState.at_rest(pos + torch.tensor([float(i), 0.0, 0.0]))
         state.vel_enu_m_s[:, 0] = float(i)
-        estimator.record(state)
+        estimator.record(state, gen)
         truths.append(state)
     samples = torch.stack([estimator.estimate(gen).vel_enu_m_s for _ in range(40)])  # [40, n, 3]
     error = samples - torch.tensor([5.0, 0.0, 0.0])  # the truth 3 steps before the newest (8)
     # Per-episode bias: constant over an episode's samples, spread over episodes as configured.
     bias = error.mean(dim=0)
     torch.testing.assert_close(bias, estimator.velocity_bias_m_s, atol=4 * config.velocity_noise_m_s / math.sqrt(40), rtol=0)
-    assert float(estimator.velocity_bias_m_s.std()) == pytest.approx(config.velocity_bias_m_s, rel=0.15)
+    horizontal, vertical = config.velocity_bias_m_s
+    assert float(estimator.velocity_bias_m_s[:, :2].std()) == pytest.approx(horizontal, rel=0.15)
+    assert float(estimator.velocity_bias_m_s[:, 2].std()) == pytest.approx(vertical, rel=0.15)
     assert float((error - bias).std()) == pytest.approx(config.velocity_noise_m_s, rel=0.05)
     est = estimator.estimate(gen)
-    assert float((est.pos_enu_m[:, 0] - 5.0).abs().max()) < 6 * (config.position_bias_m + config.position_noise_m)
+    assert float((est.pos_enu_m[:, 0] - 5.0).abs().max()) < 6 * (config.position_bias_m[0] + config.position_noise_m)
     # Attitude: a small rotation of the level truth, ~0.5 deg noise + ~0.5 deg bias per axis.
     roll_pitch = torch.stack([est.roll_pitch_rad() for est in (estimator.estimate(gen) for _ in range(20))])
     assert float(roll_pitch.std()) == pytest.approx(math.hypot(config.attitude_noise_rad, config.attitude_bias_rad), rel=0.15)
 
 
+def test_state_estimate_drift_wanders_with_its_measured_size_and_correlation_time():
+    """The drift is PX4 SIH's wandering error: stationary from the first step (drawn at reset), its
+    spread per axis as configured, its autocorrelation exp(-lag / drift_correlation_s)."""
+    dt_s = CONTROL_PERIOD_S / 7
+    n = 2048
+    config = StateEstimateConfig()
+    estimator = StateEstimator(config, n, dt_s)
+    gen = torch.Generator().manual_seed(1)
+    state = QuadState.at_rest(torch.zeros(n, 3))
+    estimator.reset(torch.arange(n), state, gen)
+    start = estimator.drift.clone()
+    lag_steps = round(config.drift_correlation_s / dt_s)
+    for _ in range(lag_steps):
+        estimator.record(state, gen)
+    later = estimator.drift
+    expected_sd = torch.tensor([*config.position_drift_m[:1] * 2, config.position_drift_m[1], *config.velocity_drift_m_s[:1] * 2, config.velocity_drift_m_s[1]])
+    for drift in (start, later):
+        torch.testing.assert_close(drift.std(dim=0), expected_sd, rtol=0.08, atol=0.0)
+    correlation = (start * later).mean(dim=0) / (start.std(dim=0) * later.std(dim=0))
+    assert float((correlation - math.exp(-1.0)).abs().max()) < 0.08, correlation
+    # The estimate carries it: position error = bias + drift (+ noise); the bias stays, the drift moves.
+    est = estimator.estimate(gen)
+    error = est.pos_enu_m - estimator._line.read(estimator.delay_steps)[:, 0:3]
+    residual = error - estimator.position_bias_m - later[:, 0:3]
+    assert float(residual.std()) == pytest.approx(config.position_noise_m, rel=0.1)
+
+
+def test_the_autopilot_holds_its_estimate_so_the_truth_slides_by_the_estimates_error(encoder):
+    """PX4 controls its estimated velocity: told to hover, the vehicle whose estimate is 0.4 m/s
+    off drifts at -0.4 m/s in truth while its estimate (what the policy sees) reads ~0."""
+    config = StateEstimateConfig(velocity_bias_m_s=(0.4, 0.2), velocity_drift_m_s=(0.0, 0.0), velocity_noise_m_s=0.0,
+                                 position_drift_m=(0.0, 0.0))  # fmt: skip
+    env = _env(encoder, num_envs=64, state_estimate=config)
+    for _ in range(30):  # 2 s: the velocity loop has settled
+        obs = env.step(torch.tensor([HOVER] * 64)).obs
+    bias = env.estimator.velocity_bias_m_s
+    assert float(bias.abs().mean()) > 0.15
+    torch.testing.assert_close(env.state.vel_enu_m_s, -bias, atol=0.08, rtol=0)
+    assert float(obs[:, 6:9].abs().max()) < 0.1  # the estimated body velocity: at the setpoint
+
+
 def test_the_env_observes_the_estimate_and_rewards_the_truth(encoder):
-    env = _env(encoder, num_envs=64, state_estimate=StateEstimateConfig())
+    config = StateEstimateConfig()
+    env = _env(encoder, num_envs=64, state_estimate=config)
     obs = env.step(torch.tensor([HOVER] * 64)).obs
     true_obs = env._state_observation()
-    vel_error = obs[:, 6:9] - true_obs[:, 6:9]  # body velocity (m/s): noise + bias
-    assert float(vel_error.std()) == pytest.approx(math.hypot(0.05, 0.02), rel=0.2)
+    vel_error = obs[:, 6:9] - true_obs[:, 6:9]  # body velocity (m/s): noise + bias + drift
+    per_axis = [math.hypot(config.velocity_noise_m_s, b, d) for b, d in zip(config.velocity_bias_m_s, config.velocity_drift_m_s)]
+    expected = math.sqrt((2 * per_axis[0] ** 2 + per_axis[1] ** 2) / 3)  # level: body x, y horizontal, z vertical
+    assert float(vel_error.std()) == pytest.approx(expected, rel=0.2)
     assert torch.equal(obs[:, 12:15], true_obs[:, 12:15])  # the previous action is the policy's own
 
 
@@ -273,7 +319,7 @@ def test_evaluate_policy_runs_the_field_condition_and_records_its_settings(tmp_p
     assert cell["success_pct"] + cell["timeout_pct"] + cell["crash_pct"] == pytest.approx(100.0)
     field = written["field"]["field"]
     assert field["action_limits"] == {"max_speed_m_s": 1.0, "max_inclination_rad": 0.35}
-    assert field["state_estimate"]["velocity_noise_m_s"] == 0.05 and field["latency_range_s"] == [0.02, 0.08]
+    assert field["state_estimate"]["position_drift_m"] == list(StateEstimateConfig().position_drift_m) and field["latency_range_s"] == [0.02, 0.08]
     assert written["stereo_sensor"]["field"]["projector_on"]
     assert written["config"]["episode_duration_s"] == 0.4
 

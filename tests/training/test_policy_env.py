@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from torch import Tensor
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -121,18 +122,22 @@ def test_forward_action_flies_at_the_contract_speed(encoder):
     assert torch.allclose(speed_forward, torch.full_like(speed_forward, 2.0), atol=0.1)
 
 
+def _hover_near_goal(env: NavEnv) -> Tensor:
+    """Env 0's goal put 0.5 m from it, env 1 climbing into the ceiling, env 2 far from its goal; all
+    three hover (action: speed 0) but env 1."""
+    env.reset()
+    env.auto_reset = False
+    env.world.goal_m[0] = env.state.pos_enu_m[0] + torch.tensor([0.5, 0.0, 0.0])
+    env.prev_dist_m[0] = 0.5
+    return torch.tensor([[-1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+
+
 def test_episodes_end_in_success_crash_and_timeout(encoder):
     """A crash ends an episode at once; otherwise it lasts 10 s and ends in success if the vehicle
     is then within 1 m of the goal (reaching the goal earlier does not end it), else timeout."""
     env = _env(encoder, level=0)
-    env.reset()
-    # Env 0 hovers (speed 0) next to its goal; env 1 climbs at full speed into the ceiling; env 2
-    # hovers far from its goal.
-    env.world.goal_m[0] = env.state.pos_enu_m[0] + torch.tensor([0.5, 0.0, 0.0])
-    env.prev_dist_m[0] = 0.5
+    action = _hover_near_goal(env)
     outcomes = {}
-    action = torch.tensor([[-1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
-    env.auto_reset = False
     for step in range(env.config.max_steps):
         out = env.step(action)
         for i in out.done.nonzero().flatten().tolist():
@@ -141,6 +146,33 @@ def test_episodes_end_in_success_crash_and_timeout(encoder):
     assert outcomes[1][0] == CRASH and outcomes[1][1] < 40 and outcomes[1][2] == -env.config.reward.crash_penalty
     assert outcomes[2][0] == TIMEOUT and outcomes[2][1] * CONTROL_PERIOD_S == pytest.approx(EPISODE_DURATION_S)
     assert not env.active.any()
+
+
+def test_end_at_goal_ends_in_success_at_the_first_step_there_paid_at_least_staying(encoder):
+    """--end-at-goal: the runtime's rule (success at the first step within 1 m); the arrival pays
+    the hover reward on the goal for every step left, which is at least what hovering there for the
+    rest of the paper's 10 s episode earns."""
+    stay = _env(encoder, level=0)
+    action = _hover_near_goal(stay)
+    stayed_reward = 0.0
+    for _ in range(stay.config.max_steps):
+        stayed_reward += float(stay.step(action).reward[0])
+    assert int(stay.step_count[0]) == stay.config.max_steps
+
+    end = _env(encoder, level=0, end_at_goal=True)
+    action = _hover_near_goal(end)
+    out = end.step(action)
+    assert out.outcome.tolist()[0] == SUCCESS and out.done.tolist() == [True, False, False]
+    assert float(out.reward[0]) >= stayed_reward
+    expected_arrival = (end.config.max_steps - 1) * end.goal_hover_reward()
+    assert out.reward_terms["arrival"] == pytest.approx(expected_arrival / 3, rel=1e-5)
+    assert float(out.reward[2]) < 20.0  # no arrival far from the goal
+    outcomes = {}
+    for step in range(1, end.config.max_steps):
+        out = end.step(action)
+        for i in out.done.nonzero().flatten().tolist():
+            outcomes[i] = int(out.outcome[i])
+    assert outcomes == {1: CRASH, 2: TIMEOUT}
 
 
 def test_curriculum_moves_by_the_window_success_rate():

@@ -12,6 +12,7 @@ import torch
 from runtime.contract.constants import OBS_LATENT
 from training.checkpoint import checkpoint_fingerprint, load_train_state, read_card, save_weights
 from training.cmwae.model import Cmwae, make_config
+from training.policy.evaluate import reached_goal
 from training.policy.network import POLICY_SIZES, ActorCritic, RunningNorm, load_policy
 from training.policy.ppo import Rollout, gae
 from training.policy.train import init_from_policy
@@ -119,7 +120,8 @@ def test_train_policy_moves_the_curriculum_checkpoints_resumes_and_evaluates(enc
         assert cell["success_pct"] + cell["timeout_pct"] + cell["crash_pct"] == pytest.approx(100.0)
         low, high = cell["success_ci95_pct"]
         assert 0.0 <= low <= cell["success_pct"] <= high <= 100.0 and high - low > 30.0  # two episodes say little
-    assert "| condition | level | episodes | success % | 95 % interval | timeout % | crash % |" in stdout
+        assert cell["success_pct"] <= cell["reached_pct"] <= 100.0  # a success ends within 1 m: it reached the goal
+    assert "| condition | level | episodes | success % | 95 % interval | timeout % | crash % | reached % |" in stdout
     assert len(list((tmp_path / "eval").glob("clean_level00_ep*.png"))) == 2
     assert (tmp_path / "eval" / "table2.md").read_text().count("\n") == 8
 
@@ -182,3 +184,10 @@ def test_init_from_restandardises_the_latent_on_the_new_encoder(encoders, tmp_pa
     same = ActorCritic(POLICY_SIZES["tiny"])
     init_from_policy(same, str(source), checkpoint_fingerprint(encoders / "enc"), Resets())
     torch.testing.assert_close(same.obs_norm.mean, start.obs_norm.mean)
+
+
+def test_reached_is_the_runtimes_rule_any_entry_within_a_metre_before_the_end():
+    goal = [5.0, 0.0, 2.0]
+    through = [[0.0, 0.0, 2.0], [4.2, 0.0, 2.0], [5.0, 0.9, 2.0], [6.5, 1.5, 2.0]]  # passed within 0.9 m, ended 2.1 m off
+    assert reached_goal(through, goal)
+    assert not reached_goal([[0.0, 0.0, 2.0], [3.9, 0.5, 2.5], [4.3, 1.0, 2.0]], goal)  # never nearer than 1.2 m

@@ -39,9 +39,9 @@ from ..distributed import DistInfo, log_weights_digest, wall_budget_spent
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .env import CRASH, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder
-from .field import FIELD_DEPTHS, field_env_overrides, px4_vehicle_env_overrides
+from .field import FIELD_DEPTHS, VEHICLES, field_env_overrides, vehicle_env_overrides
 from .network import CHECKPOINT_KIND, STUDENT, TEACHER, ActorCritic, PolicyConfig, load_policy
-from .train import init_from_policy
+from .train import check_resumed_task, init_from_policy
 
 log = logging.getLogger(__name__)
 _SINGLE = DistInfo()  # one process: the teacher labels every step of its own envs
@@ -79,6 +79,8 @@ class DaggerConfig:
     # "px4" (PX4 v1.16's identified response, latency and EKF2-like estimates alone, Table II's
     # ``px4``: what `cmnav sitl --autopilot` flies); the field includes the latter.
     vehicle: str = "ideal"
+    # Episodes end in success at the goal, as the runtime's do (NavEnvConfig.end_at_goal).
+    end_at_goal: bool = False
     min_level: int = 0
     max_level: int = 20
     # Extra weight of the steps whose teacher sees a surface nearer than near_m (m) in the
@@ -100,11 +102,11 @@ class DaggerConfig:
     def env_config(self) -> NavEnvConfig:
         curriculum = CurriculumConfig(start_level=self.min_level, min_level=self.min_level, max_level=self.max_level)
         field_options = {"corruption": FIELD_DEPTHS[self.field_depth], **field_env_overrides()} if self.field_conditions else {}
-        if self.vehicle == "px4":
-            field_options |= px4_vehicle_env_overrides()
+        field_options |= vehicle_env_overrides(self.vehicle)
         return replace(NavEnvConfig(num_envs=self.num_envs, corruption=self.corruption, curriculum=curriculum,
                                     corrupted_env_fraction=self.corrupted_env_fraction, level_sampling="uniform",
-                                    projector_off_episode_fraction=self.projector_off_episode_fraction),
+                                    projector_off_episode_fraction=self.projector_off_episode_fraction,
+                                    end_at_goal=self.end_at_goal),
                        **(field_options | self.env_overrides))  # fmt: skip
 
     def validate(self) -> None:
@@ -112,8 +114,8 @@ class DaggerConfig:
             raise ValueError(f"corruption={self.corruption!r} must be 'train' or 'none' (the depth-only baseline)")
         if self.field_depth not in FIELD_DEPTHS:
             raise ValueError(f"field_depth={self.field_depth!r} must be one of {', '.join(FIELD_DEPTHS)}")
-        if self.vehicle not in ("ideal", "px4"):
-            raise ValueError(f"vehicle={self.vehicle!r} must be 'ideal' or 'px4'")
+        if self.vehicle not in VEHICLES:
+            raise ValueError(f"vehicle={self.vehicle!r} must be one of {VEHICLES}")
         if self.vehicle == "px4" and self.field_conditions:
             raise ValueError("vehicle='px4' with the field: the field flies PX4's response already; give one of them")
         if not 0.0 <= self.beta_end <= self.beta_start <= 1.0:
@@ -255,6 +257,7 @@ def train_dagger(config: DaggerConfig) -> Path:
         if state.get("encoder_fingerprint") != encoder_fingerprint:
             raise ValueError(f"--resume: {out} was distilled on encoder {state.get('encoder_fingerprint')}, but "
                              f"{config.encoder_dir} is {encoder_fingerprint}; resume with the same --encoder or start a new --out")  # fmt: skip
+        check_resumed_task(state, out, config.vehicle, config.end_at_goal)
         student.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         for group in optimizer.param_groups:
@@ -293,7 +296,8 @@ def train_dagger(config: DaggerConfig) -> Path:
                      {**meta, "env_steps": env_steps, "iteration": iteration})  # fmt: skip
         save_train_state(out, {"model": student.state_dict(), "optimizer": optimizer.state_dict(), "iteration": iteration,
                                "env_steps": env_steps, "env_rng": env.generator.get_state(), "rng": generator.get_state(),
-                               "encoder_fingerprint": encoder_fingerprint, "init_from": init_meta})  # fmt: skip
+                               "encoder_fingerprint": encoder_fingerprint, "init_from": init_meta, "vehicle": config.vehicle,
+                               "end_at_goal": config.end_at_goal})  # fmt: skip
 
     obs = env.reset()
     carry = {"obs": obs, "teacher_obs": env.teacher_observation(), "starts": torch.ones(config.num_envs, dtype=torch.bool, device=device),

@@ -10,9 +10,10 @@ dynamics follow for one control period, with collisions checked every physics su
 
 Episodes end in a crash (any contact) or after 10 s: success if the vehicle is then within 1 m of
 the goal, else timeout (Aerial Gym's rule, which its reward assumes: a policy is paid for
-staying at the goal, so reaching it must not end the episode).  An ended env is reset at once to
-a new room at the curriculum's current level (training), or stays ended (evaluation,
-``auto_reset=False``).
+staying at the goal, so reaching it must not end the episode).  With ``end_at_goal`` (a training
+option) they end instead as the runtime's do: in success at the first step within 1 m, paid what
+staying there would at most have earned (below).  An ended env is reset at once to a new room at
+the curriculum's current level (training), or stays ended (evaluation, ``auto_reset=False``).
 """
 
 from __future__ import annotations
@@ -165,6 +166,11 @@ class NavEnvConfig:
     state_estimate: StateEstimateConfig | None = None  # None: the policy sees the true state
     # Per-episode vehicle parameters (and command delays) drawn around ``dynamics``.
     dynamics_randomization: DynamicsRandomization | None = None
+    # End an episode in success at its first step within GOAL_REACHED_RADIUS_M of the goal (the
+    # runtime's rule: `cmnav fly` hovers and holds there), paid the reward of hovering at the goal
+    # itself for every step left (:meth:`NavEnv.goal_hover_reward`), so that arriving is never worth
+    # less than staying.  Training only: Table II keeps the paper's rule and counts ``reached``.
+    end_at_goal: bool = False
 
     @property
     def max_steps(self) -> int:
@@ -606,13 +612,15 @@ class NavEnv:
                 self._command_line.push(torch.cat([vel_cmd_enu, yaw_rate_cmd.unsqueeze(-1)], dim=-1))
                 acting = self._command_line.read(self.command_delay_steps)
                 vel_cmd_enu, yaw_rate_cmd = acting[:, :3], acting[:, 3]
+            if self.estimator is not None:  # the autopilot holds its estimate, not the truth, at the setpoint
+                vel_cmd_enu = vel_cmd_enu - self.estimator.velocity_error_m_s()
             new = self.dynamics.step(state, vel_cmd_enu, yaw_rate_cmd, dt_s, kick_force, self.dynamics_per_env)
             # Crashed (and ended) envs stay where they are.
             frozen = (crashed | ~self.active).unsqueeze(-1)
             state = QuadState(*(_keep_frozen(frozen, getattr(state, f.name), getattr(new, f.name)) for f in fields(QuadState)))
             crashed |= collides(self.world, state.pos_enu_m, cfg.vehicle_radius_m) & self.active
             if self.estimator is not None:
-                self.estimator.record(state)
+                self.estimator.record(state, self.generator)
         self.state = state
         self.step_count += self.active.long()
         t0 = self._timed("physics", t0)
@@ -621,13 +629,19 @@ class NavEnv:
         # As in Aerial Gym, whose reward this is: reaching the goal does not end the episode (the
         # reward pays for staying there); at 10 s it ends in success within 1 m, else timeout.
         ended = (self.step_count >= cfg.max_steps) & ~crashed & self.active
-        success = ended & (dist_m < GOAL_REACHED_RADIUS_M)
+        within = dist_m < GOAL_REACHED_RADIUS_M
+        success = (within & ~crashed & self.active) if cfg.end_at_goal else (ended & within)
         timeout = ended & ~success
         outcome = torch.full((self.num_envs,), RUNNING, dtype=torch.long, device=self.device)
         outcome[success] = SUCCESS
         outcome[crashed] = CRASH
         outcome[timeout] = TIMEOUT
         reward, terms = self._reward(action, dist_m, crashed)
+        if cfg.end_at_goal:
+            steps_left = (cfg.max_steps - self.step_count).clamp_min(0).float()
+            arrival = torch.where(success, steps_left * self.goal_hover_reward(), torch.zeros_like(reward))
+            reward = reward + arrival
+            terms["arrival"] = float(arrival.mean())
         reward = torch.where(self.active, reward, torch.zeros_like(reward))
         done = (outcome != RUNNING) & self.active
         level = self.episode_level.clone()
@@ -660,6 +674,16 @@ class NavEnv:
         rotation = quat_from_euler(angles[:, 0], angles[:, 1], angles[:, 2])
         return force.to(self.device), rotation.to(self.device)
 
+    def goal_hover_reward(self) -> float:
+        """One step's reward for hovering on the goal itself (distance 0, still, zero action): the
+        most a step within the goal radius can earn, at the curriculum's current scale."""
+        r = self.config.reward
+        return (r.goal_attraction + r.goal_close + 1.0) * self._positive_scale()  # the distance term is 1 at the goal
+
+    def _positive_scale(self) -> float:
+        r = self.config.reward
+        return 1.0 + r.positive_scale_per_progress * self.curriculum.progress
+
     def _reward(self, action: Tensor, dist_m: Tensor, crashed: Tensor) -> tuple[Tensor, dict[str, float]]:
         r = self.config.reward
         dev = self.device
@@ -673,8 +697,7 @@ class NavEnv:
                       * (torch.exp(-change.square() * torch.tensor(r.action_change_exp, device=dev)) - 1.0)).sum(-1)  # fmt: skip
         action_pen = (torch.tensor(r.action_penalty, device=dev)
                       * (torch.exp(-action.square() * torch.tensor(r.action_exp, device=dev)) - 1.0)).sum(-1)  # fmt: skip
-        scale = 1.0 + r.positive_scale_per_progress * self.curriculum.progress
-        positive = (attraction + close + progress.clamp_min(0.0) + distance.clamp_min(0.0)) * scale
+        positive = (attraction + close + progress.clamp_min(0.0) + distance.clamp_min(0.0)) * self._positive_scale()
         negative = progress.clamp_max(0.0) + distance.clamp_max(0.0) + change_pen + action_pen
         reward = torch.where(crashed, torch.full_like(dist_m, -r.crash_penalty), positive + negative)
         terms = {

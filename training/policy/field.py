@@ -70,6 +70,9 @@ def field_action_limits(path: str | Path = FIELD_CONFIG_TOML) -> ActionLimits:
         raise FieldConfigError(f"{path}: [policy.limits] {err}") from err
 
 
+VEHICLES = ("ideal", "px4")  # the vehicles training flies: the batched sim's own, or PX4's (below)
+
+
 def px4_vehicle_env_overrides() -> dict:
     """The field's vehicle alone: image-to-command latency, PX4 v1.16's identified response and
     command delays (randomized per episode) and EKF2-like estimates, at the contract's speeds and
@@ -81,6 +84,12 @@ def px4_vehicle_env_overrides() -> dict:
         "dynamics_randomization": DynamicsRandomization(),
         "state_estimate": StateEstimateConfig(),
     }
+
+
+def vehicle_env_overrides(vehicle: str) -> dict:
+    """The NavEnvConfig fields of a training run's ``vehicle`` (one of VEHICLES): none for the
+    batched sim's own, :func:`px4_vehicle_env_overrides` for PX4's."""
+    return px4_vehicle_env_overrides() if vehicle == "px4" else {}
 
 
 def field_env_overrides(limits: ActionLimits | None = None) -> dict:

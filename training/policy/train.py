@@ -20,6 +20,7 @@ from ..distributed import DistInfo, all_reduce_mean, log_weights_digest, run_dis
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .env import CRASH, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder
+from .field import VEHICLES, vehicle_env_overrides
 from .network import CHECKPOINT_KIND, ActorCritic, PolicyConfig, load_policy, policy_role
 from .ppo import PpoConfig, ReturnNormalizer, Rollout, ppo_update
 
@@ -44,12 +45,21 @@ class PolicyTrainConfig:
     max_wall_s: float | None = None  # stop (with a checkpoint) after this long
     precision: str = "auto"  # the frozen encoder's fast path (training.fastpath)
     env_overrides: dict = field(default_factory=dict)  # other NavEnvConfig fields
+    # The vehicle flown: "ideal" (commands followed at once, true state) or "px4" (PX4 v1.16's
+    # identified response, latency and EKF2-like estimates: training.policy.field.px4_vehicle_env_overrides;
+    # a teacher still observes the true state).
+    vehicle: str = "ideal"
+    # Episodes end in success at the goal, as the runtime's do (NavEnvConfig.end_at_goal).
+    end_at_goal: bool = False
 
     def env_config(self) -> NavEnvConfig:
-        return replace(NavEnvConfig(num_envs=self.num_envs, corruption=self.corruption, curriculum=self.curriculum),
-                       **self.env_overrides)  # fmt: skip
+        return replace(NavEnvConfig(num_envs=self.num_envs, corruption=self.corruption, curriculum=self.curriculum,
+                                    end_at_goal=self.end_at_goal),
+                       **vehicle_env_overrides(self.vehicle), **self.env_overrides)  # fmt: skip
 
     def validate(self) -> None:
+        if self.vehicle not in VEHICLES:
+            raise ValueError(f"vehicle={self.vehicle!r} must be one of {VEHICLES}")
         if self.env_steps < 1:
             raise ValueError(f"env_steps={self.env_steps} must be >= 1")
         if self.checkpoint_every < 1:
@@ -102,6 +112,7 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
                 f"--resume: {out} was trained on encoder {state.get('encoder_fingerprint')}, but {config.encoder_dir} is "
                 f"{encoder_fingerprint}; resume with the same --encoder or start a new --out"
             )
+        check_resumed_task(state, out, config.vehicle, config.end_at_goal)
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         for group in optimizer.param_groups:
@@ -151,7 +162,7 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
             "env_steps": env_steps, "return_normalizer": normalizer.state_dict(),
             "curriculum": env.curriculum.state_dict(), "env_rng": env.generator.get_state(),
             "update_rng": update_generator.get_state(), "encoder_fingerprint": encoder_fingerprint,
-            "init_from": meta.get("init_from"),
+            "init_from": meta.get("init_from"), "vehicle": config.vehicle, "end_at_goal": config.end_at_goal,
         })  # fmt: skip
 
     obs = env.reset()
@@ -193,6 +204,18 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
     if writer is not None:
         writer.close()
     return out
+
+
+def check_resumed_task(state: dict, out: Path, vehicle: str, end_at_goal: bool) -> None:
+    """--resume goes on with the task the run started on: the vehicle flown and where episodes end
+    (train states written before either was recorded: the ideal vehicle, the paper's 10 s)."""
+    if state.get("vehicle", "ideal") != vehicle:
+        raise ValueError(f"--resume: {out} was trained on the {state.get('vehicle', 'ideal')} vehicle, but --vehicle "
+                         f"{vehicle} was given; resume with the same --vehicle or start a new --out")  # fmt: skip
+    if state.get("end_at_goal", False) != end_at_goal:
+        given = "given" if end_at_goal else "not given"
+        raise ValueError(f"--resume: {out} was trained with episodes ending {'at the goal' if state.get('end_at_goal') else 'at 10 s'}, "
+                         f"but --end-at-goal was {given}; resume with the same episodes or start a new --out")  # fmt: skip
 
 
 LATENT_STATS_RESETS = 8  # env resets whose first observations re-estimate the latent statistics

@@ -27,7 +27,8 @@ def test_our_vehicle_starts_up_like_px4(launch_sitl):
         parser = mavlink.MAVLink(None)
         armed_early = None
         booted_s = float("inf")  # the vehicle's boot on this clock, from its messages' time_boot_ms
-        while time.monotonic() - sitl.t_launch_s < PX4_PREARM_AFTER_S + 4.0:
+        # Until 4 s past PX4's pre-arm time after the boot (at most a minute after the launch).
+        while time.monotonic() - sitl.t_launch_s < min(booted_s + PX4_PREARM_AFTER_S + 4.0, 60.0):
             try:
                 data, addr = sock.recvfrom(65535)
             except socket.timeout:

@@ -39,7 +39,7 @@ from ..distributed import DistInfo, log_weights_digest, wall_budget_spent
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .env import CRASH, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder
-from .field import FIELD_DEPTHS, VEHICLES, field_env_overrides, vehicle_env_overrides
+from .field import FIELD_DEPTHS, check_vehicle, field_env_overrides, vehicle_env_overrides
 from .network import CHECKPOINT_KIND, STUDENT, TEACHER, ActorCritic, PolicyConfig, load_policy
 from .train import check_resumed_task, init_from_policy
 
@@ -114,8 +114,7 @@ class DaggerConfig:
             raise ValueError(f"corruption={self.corruption!r} must be 'train' or 'none' (the depth-only baseline)")
         if self.field_depth not in FIELD_DEPTHS:
             raise ValueError(f"field_depth={self.field_depth!r} must be one of {', '.join(FIELD_DEPTHS)}")
-        if self.vehicle not in VEHICLES:
-            raise ValueError(f"vehicle={self.vehicle!r} must be one of {VEHICLES}")
+        check_vehicle(self.vehicle)
         if self.vehicle == "px4" and self.field_conditions:
             raise ValueError("vehicle='px4' with the field: the field flies PX4's response already; give one of them")
         if not 0.0 <= self.beta_end <= self.beta_start <= 1.0:

@@ -73,6 +73,12 @@ def field_action_limits(path: str | Path = FIELD_CONFIG_TOML) -> ActionLimits:
 VEHICLES = ("ideal", "px4")  # the vehicles training flies: the batched sim's own, or PX4's (below)
 
 
+def check_vehicle(vehicle: str) -> None:
+    """ValueError unless ``vehicle`` is one of VEHICLES (a training config's ``vehicle``)."""
+    if vehicle not in VEHICLES:
+        raise ValueError(f"vehicle={vehicle!r} must be one of {VEHICLES}")
+
+
 def px4_vehicle_env_overrides() -> dict:
     """The field's vehicle alone: image-to-command latency, PX4 v1.16's identified response and
     command delays (randomized per episode) and EKF2-like estimates, at the contract's speeds and

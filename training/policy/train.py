@@ -20,7 +20,7 @@ from ..distributed import DistInfo, all_reduce_mean, log_weights_digest, run_dis
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .env import CRASH, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder
-from .field import VEHICLES, vehicle_env_overrides
+from .field import check_vehicle, vehicle_env_overrides
 from .network import CHECKPOINT_KIND, ActorCritic, PolicyConfig, load_policy, policy_role
 from .ppo import PpoConfig, ReturnNormalizer, Rollout, ppo_update
 
@@ -58,8 +58,7 @@ class PolicyTrainConfig:
                        **vehicle_env_overrides(self.vehicle), **self.env_overrides)  # fmt: skip
 
     def validate(self) -> None:
-        if self.vehicle not in VEHICLES:
-            raise ValueError(f"vehicle={self.vehicle!r} must be one of {VEHICLES}")
+        check_vehicle(self.vehicle)
         if self.env_steps < 1:
             raise ValueError(f"env_steps={self.env_steps} must be >= 1")
         if self.checkpoint_every < 1:

@@ -224,6 +224,10 @@ class VehicleConfig:
     health_timeout_s: float = 30.0  # until armable with a local position
     takeoff_timeout_s: float = 30.0  # until the takeoff altitude is reached and Hold shows
     land_timeout_s: float = 60.0  # until disarmed after land
+    # Fly the command, not the estimate: measure the autopilot's velocity error against the rate
+    # of its own position estimate over this window and correct for it (runtime.velocity_bias).
+    velocity_bias_correction: bool = True
+    velocity_bias_window_s: float = 0.3
 
     def __post_init__(self) -> None:
         problem = mavsdk_url_problem(self.url)
@@ -237,6 +241,8 @@ class VehicleConfig:
         for key in ("connect_timeout_s", "command_timeout_s", "health_timeout_s", "takeoff_timeout_s", "land_timeout_s"):
             _positive(f"vehicle.{key}", getattr(self, key))
             _within(f"vehicle.{key}", getattr(self, key), 0.0, _VEHICLE_TIMEOUT_MAX_S[key], "s", "a wait that ends")
+        _within("vehicle.velocity_bias_window_s", self.velocity_bias_window_s, 0.05, 2.0, "s",
+                "a few estimates (PX4 sends ODOMETRY at ~10 Hz or faster)")  # fmt: skip
 
 
 # The exported model's variants (``cmnav export --variants``): fp32 is the file ``model_path``

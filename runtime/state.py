@@ -82,7 +82,9 @@ class VehicleState:
     """Telemetry snapshot on the policy side.
 
     Positions are in the autopilot's local frame turned ENU (metres; origin = the local NED
-    origin, *not* necessarily home — use ``home_enu_m``); velocities world ENU (m/s); attitude
+    origin, *not* necessarily home — use ``home_enu_m``); velocities world ENU (m/s): ``vel_enu_m_s``
+    is the vehicle's (the autopilot's estimate less ``vel_bias_enu_m_s``, the estimate's velocity
+    error measured against the rate of its own position: ``runtime.velocity_bias``); attitude
     ``quat_enu_flu`` (w, x, y, z) rotates body FLU into world ENU; ``angvel_body_flu_rad_s`` body
     FLU.  Every ``t_*_ns`` is the receive time on this host's CLOCK_MONOTONIC, 0 = never received.
     """
@@ -90,6 +92,7 @@ class VehicleState:
     t_estimate_us: int = 0  # the autopilot's time of the estimate below (ODOMETRY time_usec, its boot clock), 0 = none
     pos_enu_m: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
     vel_enu_m_s: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    vel_bias_enu_m_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
     t_posvel_ns: int = 0
     quat_enu_flu: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0, 0.0]))
     t_att_ns: int = 0

@@ -33,6 +33,7 @@ from .programs.mission_goals import RawMissionItem
 from .contract import HOVER, VelocityBodyYawspeed
 from .contract.frames import ned_to_enu, quat_ned_frd_to_enu_flu
 from .service.shutdown import in_daemon_thread
+from .velocity_bias import VelocityBias, setpoint_with_bias
 from .state import (
     MODE_HOLD,
     VehicleCommandError,
@@ -68,6 +69,8 @@ class Vehicle:
         self._updated = asyncio.Event()
         self.setpoints_sent = 0
         self.estimates_out_of_order = 0  # ODOMETRY messages not newer than the kept estimate, ignored
+        # The estimate's velocity error against its position's rate (None: corrected off, bias 0).
+        self.velocity_bias = VelocityBias(config.velocity_bias_window_s) if config.velocity_bias_correction else None
 
     # ------------------------------------------------------------------ connection
 
@@ -154,7 +157,12 @@ class Vehicle:
             self.estimates_out_of_order += 1
             return {}
         now = time.monotonic_ns()
-        return {**_odometry_fields(odometry), "t_estimate_us": t_us, "t_posvel_ns": now, "t_att_ns": now, "t_angvel_ns": now}
+        fields = _odometry_fields(odometry)
+        if self.velocity_bias is not None:
+            bias = self.velocity_bias.update(t_us * 1e-6, fields["pos_enu_m"], fields["vel_enu_m_s"])
+            fields["vel_enu_m_s"] = fields["vel_enu_m_s"] - bias
+            fields["vel_bias_enu_m_s"] = bias.copy()
+        return {**fields, "t_estimate_us": t_us, "t_posvel_ns": now, "t_att_ns": now, "t_angvel_ns": now}
 
     def _status_text_fields(self, message) -> dict:
         """A STATUSTEXT (MAVSDK ``StatusText``: ``type`` is a StatusTextType named as MAV_SEVERITY)
@@ -248,9 +256,15 @@ class Vehicle:
     async def set_velocity_body(self, cmd: VelocityBodyYawspeed) -> None:
         """Send a body-frame velocity setpoint (FRD, m/s; yaw speed deg/s, + = turn right).
 
-        MAVSDK sends it at once and then re-sends the last one at 20 Hz by itself.
+        MAVSDK sends it at once and then re-sends the last one at 20 Hz by itself.  The estimate's
+        velocity bias (``runtime.velocity_bias``) is added, so the vehicle flies ``cmd`` where the
+        autopilot holds its estimate at the setpoint.
         """
-        setpoint = MavsdkVelocityBodyYawspeed(cmd.forward_m_s, cmd.right_m_s, cmd.down_m_s, cmd.yawspeed_deg_s)
+        forward, right, down = cmd.forward_m_s, cmd.right_m_s, cmd.down_m_s
+        state = self.state()
+        if np.any(state.vel_bias_enu_m_s):
+            forward, right, down = setpoint_with_bias(forward, right, down, state.vel_bias_enu_m_s, state.yaw_enu_rad)
+        setpoint = MavsdkVelocityBodyYawspeed(forward, right, down, cmd.yawspeed_deg_s)
         offboard = self._require(self._offboard)
         blocking = getattr(offboard, "_plugin", None)  # MAVSDK 4's synchronous plugin behind the asyncio wrapper
         if blocking is None:

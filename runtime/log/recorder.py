@@ -78,7 +78,7 @@ _INT = {"type": "integer"}
 _SCHEMAS: dict[str, tuple[str, str, dict[str, Any]]] = {
     TOPIC_STATE: ("cmnav.VehicleState", "Vehicle telemetry: local ENU world, FLU body; t_*_ns = receive times (CLOCK_MONOTONIC)", {
         "t_ns": _INT, "pos_enu_m": _NUM_ARRAY, "vel_enu_m_s": _NUM_ARRAY, "vel_body_flu_m_s": _NUM_ARRAY,
-        "quat_enu_flu": _NUM_ARRAY, "angvel_body_flu_rad_s": _NUM_ARRAY, "yaw_enu_rad": {"type": ["number", "null"]},
+        "vel_bias_enu_m_s": _NUM_ARRAY, "quat_enu_flu": _NUM_ARRAY, "angvel_body_flu_rad_s": _NUM_ARRAY, "yaw_enu_rad": {"type": ["number", "null"]},
         "height_above_home_m": {"type": ["number", "null"]}, "flight_mode": {"type": "string"},
         "armed": {"type": "boolean"}, "in_air": {"type": "boolean"}, "landed_state": {"type": "string"},
         "t_posvel_ns": _INT, "t_att_ns": _INT, "t_mode_ns": _INT}),
@@ -374,6 +374,7 @@ def _state_message(t_ns: int, s: VehicleState) -> dict:
         "pos_enu_m": _floats(s.pos_enu_m),
         "vel_enu_m_s": _floats(s.vel_enu_m_s),
         "vel_body_flu_m_s": _floats(s.vel_body_flu_m_s),
+        "vel_bias_enu_m_s": _floats(s.vel_bias_enu_m_s),  # the autopilot's velocity = vel_enu_m_s + this
         "quat_enu_flu": _floats(s.quat_enu_flu),
         "angvel_body_flu_rad_s": _floats(s.angvel_body_flu_rad_s),
         "yaw_enu_rad": _number(s.yaw_enu_rad),

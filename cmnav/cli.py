@@ -15,6 +15,7 @@ log = logging.getLogger("cmnav")
 SITL_DEPTH_MODES = ("none", "projector-off", "stereo", "stereo-projector-off")
 VEHICLE_CHOICES = ("ideal", "px4")  # training.policy.field.VEHICLES, likewise
 SITL_ESTIMATES = ("exact", "px4")  # sim.sitl.estimate.ESTIMATES, likewise
+VELOCITY_BIAS_MODES = ("correct", "off")  # runtime.velocity_bias.VELOCITY_BIAS_MODES, likewise
 
 
 def _cmd_sitl(args: argparse.Namespace) -> int:
@@ -422,6 +423,11 @@ def build_parser() -> argparse.ArgumentParser:
                       help="what our SITL vehicle's autopilot knows of its state: exact (the truth) or px4 (PX4 SIH's "
                       "EKF2 as measured, biased and drifting, reported to the runtime and flown: the vehicle slides by "
                       "its velocity error as PX4 SIH's did; the camera sees the truth) (default exact)")  # fmt: skip
+    sitl.add_argument("--velocity-bias", default="correct", choices=VELOCITY_BIAS_MODES,
+                      help="the runtime's vehicle.velocity_bias_correction: correct (the autopilot's velocity estimate "
+                      "less its error against the rate of its own position, and every setpoint corrected by it, so the "
+                      "vehicle flies the command; runtime/velocity_bias.py) or off (the estimate as reported) "
+                      "(default correct)")  # fmt: skip
     sitl.add_argument(
         "--inject", action="append", default=[], metavar="KIND@SECONDS",
         help="inject a fault SECONDS after offboard start (repeatable): camera-stall, camera-garbage, "

@@ -40,6 +40,7 @@ import numpy as np
 
 from ..camera.sim_source import SimCameraSource
 from ..config import PolicyModelConfig, ProcessConfig, RecorderConfig, RuntimeConfig, VehicleConfig
+from ..velocity_bias import VELOCITY_BIAS_MODES
 from ..contract import ContractMismatchError
 from ..faults.catalogue import FaultKind, FaultSite, Injection, InjectionError, parse_injection
 from ..faults.injection import FaultyPolicy, shrink_geofence, shrink_geofence_at
@@ -88,6 +89,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--cpu-affinity", default="", metavar="CPU,...",
                         help="pin this process to these CPU ids (runtime.cpu_affinity of cmnav fly); default: no pinning")
     parser.add_argument("--intra-op-threads", type=int, default=0, help="ONNX Runtime intra-op threads (0 = its default)")
+    parser.add_argument("--velocity-bias", choices=VELOCITY_BIAS_MODES, default="correct",
+                        help="vehicle.velocity_bias_correction: correct the autopilot's velocity error (default) or off")
     parser.add_argument("--inject", action="append", default=[], metavar="KIND@SECONDS",
                         help="fault injection for tests (repeatable): inference-overrun, nan-action or geofence, "
                         "SECONDS after offboard start")  # fmt: skip
@@ -123,7 +126,8 @@ async def fly_episode(args: argparse.Namespace, summary: dict, signals: StopSign
     flight = FlightPhase()
     config = RuntimeConfig(
         policy=args.policy,
-        vehicle=VehicleConfig(url=f"udpin://127.0.0.1:{args.mavlink_port}"),
+        vehicle=VehicleConfig(url=f"udpin://127.0.0.1:{args.mavlink_port}",
+                              velocity_bias_correction=args.velocity_bias == "correct"),
         recorder=RecorderConfig(log_dir=args.log_dir),
         runtime=args.process,
     )

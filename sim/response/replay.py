@@ -114,7 +114,11 @@ def load_flight(run_dir: str | Path) -> RecordedFlight:
                 if mode == "OFFBOARD" and in_air and m["pos_enu_m"][0] is not None and m["vel_enu_m_s"][0] is not None:
                     est["t"].append(m["t_posvel_ns"] * 1e-9)
                     est["pos"].append(placement.world_position(np.asarray(m["pos_enu_m"], dtype=np.float64)))
-                    est["vel"].append(placement.world_from_local(np.asarray(m["vel_enu_m_s"], dtype=np.float64)))
+                    # The autopilot's own velocity: the runtime logs it less the bias it measured
+                    # (runtime.velocity_bias); logs from before that have no bias.
+                    bias = np.asarray(m.get("vel_bias_enu_m_s") or [0.0, 0.0, 0.0], dtype=np.float64)
+                    vel = np.asarray(m["vel_enu_m_s"], dtype=np.float64) + bias
+                    est["vel"].append(placement.world_from_local(vel))
                     est["yaw"].append(placement.world_yaw(float(m["yaw_enu_rad"])))
             elif mode == "OFFBOARD" and m["sent"]:
                 commands.append(((log_time_ns - reader.offset_ns) * 1e-9, m["forward_m_s"], -m["right_m_s"], -m["down_m_s"],

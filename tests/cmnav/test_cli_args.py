@@ -79,6 +79,13 @@ def test_the_sitl_estimates_are_the_vehicles():
     assert SITL_ESTIMATES == ESTIMATES
 
 
+def test_the_velocity_bias_modes_are_the_runtimes():
+    from cmnav.cli import VELOCITY_BIAS_MODES
+    from runtime.velocity_bias import VELOCITY_BIAS_MODES as RUNTIME_MODES
+
+    assert VELOCITY_BIAS_MODES == RUNTIME_MODES
+
+
 def test_the_vehicle_choices_are_trainings():
     from cmnav.cli import VEHICLE_CHOICES
     from training.policy.field import VEHICLES

@@ -253,10 +253,7 @@ def train_dagger(config: DaggerConfig) -> Path:
     iteration, env_steps = 0, 0
     state = load_train_state(out) if config.resume else None
     if state is not None:
-        if state.get("encoder_fingerprint") != encoder_fingerprint:
-            raise ValueError(f"--resume: {out} was distilled on encoder {state.get('encoder_fingerprint')}, but "
-                             f"{config.encoder_dir} is {encoder_fingerprint}; resume with the same --encoder or start a new --out")  # fmt: skip
-        check_resumed_task(state, out, config.vehicle, config.end_at_goal)
+        check_resumed_task(state, out, config.encoder_dir, encoder_fingerprint, config.vehicle, config.end_at_goal)
         student.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         for group in optimizer.param_groups:

@@ -106,12 +106,7 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
     iteration, env_steps = 0, 0
     state = load_train_state(out) if config.resume else None
     if state is not None:
-        if state.get("encoder_fingerprint") != encoder_fingerprint:
-            raise ValueError(
-                f"--resume: {out} was trained on encoder {state.get('encoder_fingerprint')}, but {config.encoder_dir} is "
-                f"{encoder_fingerprint}; resume with the same --encoder or start a new --out"
-            )
-        check_resumed_task(state, out, config.vehicle, config.end_at_goal)
+        check_resumed_task(state, out, config.encoder_dir, encoder_fingerprint, config.vehicle, config.end_at_goal)
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         for group in optimizer.param_groups:
@@ -205,9 +200,14 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
     return out
 
 
-def check_resumed_task(state: dict, out: Path, vehicle: str, end_at_goal: bool) -> None:
-    """--resume goes on with the task the run started on: the vehicle flown and where episodes end
-    (train states written before either was recorded: the ideal vehicle, the paper's 10 s)."""
+def check_resumed_task(state: dict, out: Path, encoder_dir, encoder_fingerprint: str | None, vehicle: str,
+                       end_at_goal: bool) -> None:  # fmt: skip
+    """--resume goes on with the task the run started on: the encoder (None: a teacher's privileged
+    depth), the vehicle flown and where episodes end (train states written before the last two were
+    recorded: the ideal vehicle, the paper's 10 s)."""
+    if state.get("encoder_fingerprint") != encoder_fingerprint:
+        raise ValueError(f"--resume: {out} was trained on encoder {state.get('encoder_fingerprint')}, but {encoder_dir} is "
+                         f"{encoder_fingerprint}; resume with the same --encoder or start a new --out")  # fmt: skip
     if state.get("vehicle", "ideal") != vehicle:
         raise ValueError(f"--resume: {out} was trained on the {state.get('vehicle', 'ideal')} vehicle, but --vehicle "
                          f"{vehicle} was given; resume with the same --vehicle or start a new --out")  # fmt: skip

@@ -15,7 +15,7 @@ log = logging.getLogger("cmnav")
 SITL_DEPTH_MODES = ("none", "projector-off", "stereo", "stereo-projector-off")
 VEHICLE_CHOICES = ("ideal", "px4")  # training.policy.field.VEHICLES, likewise
 SITL_ESTIMATES = ("exact", "px4")  # sim.sitl.estimate.ESTIMATES, likewise
-VELOCITY_BIAS_MODES = ("correct", "off")  # runtime.velocity_bias.VELOCITY_BIAS_MODES, likewise
+VELOCITY_BIAS_MODES = ("correct", "off")  # runtime.tracking.VELOCITY_BIAS_MODES, likewise
 
 
 def _cmd_sitl(args: argparse.Namespace) -> int:
@@ -426,7 +426,7 @@ def build_parser() -> argparse.ArgumentParser:
     sitl.add_argument("--velocity-bias", default="correct", choices=VELOCITY_BIAS_MODES,
                       help="the runtime's vehicle.velocity_bias_correction: correct (the autopilot's velocity estimate "
                       "less its error against the rate of its own position, and every setpoint corrected by it, so the "
-                      "vehicle flies the command; runtime/velocity_bias.py) or off (the estimate as reported) "
+                      "vehicle flies the command; runtime/tracking.py) or off (the estimate as reported) "
                       "(default correct)")  # fmt: skip
     sitl.add_argument(
         "--inject", action="append", default=[], metavar="KIND@SECONDS",

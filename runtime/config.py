@@ -225,7 +225,7 @@ class VehicleConfig:
     takeoff_timeout_s: float = 30.0  # until the takeoff altitude is reached and Hold shows
     land_timeout_s: float = 60.0  # until disarmed after land
     # Fly the command, not the estimate: measure the autopilot's velocity error against the rate
-    # of its own position estimate over this window and correct for it (runtime.velocity_bias).
+    # of its own position estimate over this window and correct for it (runtime.tracking.VelocityBias).
     velocity_bias_correction: bool = True
     velocity_bias_window_s: float = 0.3
 

@@ -258,7 +258,8 @@ class FlightLoop:
         """Fly back along the last episode's path (the estimates its steps flew from) for
         ``distance_m`` of horizontal length, at the height where it stopped, heading unchanged, at
         the control rate (``runtime.watchdog.RetreatTracker``: a reference point moving back at
-        ``RETREAT_SPEED_M_S``, followed with a PI term).  Blind but on a path just flown; it ends
+        ``RETREAT_SPEED_M_S``, followed with a P term, and an integral where the estimate's velocity
+        is not corrected; slowing down near the end).  Blind but on a path just flown; it ends
         once the vehicle is at the path's end ("arrived"), after twice the time the reference
         needs plus ``RETREAT_TIME_MARGIN_S`` ("timeout"), or when the estimate goes stale
         ("stale_telemetry").  Returns its record {ended, retreated_m, duration_s}, None once the
@@ -269,7 +270,9 @@ class FlightLoop:
         # At the height it stopped at, not the path's: on PX4 the estimate's height drifts from the
         # truth, and a path that came down to the goal led back up into the ceiling (2 of 6 flights).
         path[:, 2] = start[2]
-        tracker = RetreatTracker(path)
+        # Its integral term cancels an autopilot's velocity error, which the runtime already takes out
+        # when it corrects the estimate (runtime.tracking.VelocityBias): then it would only wind up on the lag.
+        tracker = RetreatTracker(path, integral=not self.config.vehicle.velocity_bias_correction)
         t0_ns = time.monotonic_ns()
         limit_ns = t0_ns + int((2.0 * tracker.length_m / RETREAT_SPEED_M_S + RETREAT_TIME_MARGIN_S) * _NS_PER_S)
         stale_ns = int(self.config.watchdog.telemetry_stale_ms * _NS_PER_MS)

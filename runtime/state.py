@@ -84,7 +84,7 @@ class VehicleState:
     Positions are in the autopilot's local frame turned ENU (metres; origin = the local NED
     origin, *not* necessarily home — use ``home_enu_m``); velocities world ENU (m/s): ``vel_enu_m_s``
     is the vehicle's (the autopilot's estimate less ``vel_bias_enu_m_s``, the estimate's velocity
-    error measured against the rate of its own position: ``runtime.velocity_bias``); attitude
+    error measured against the rate of its own position: ``runtime.tracking.VelocityBias``); attitude
     ``quat_enu_flu`` (w, x, y, z) rotates body FLU into world ENU; ``angvel_body_flu_rad_s`` body
     FLU.  Every ``t_*_ns`` is the receive time on this host's CLOCK_MONOTONIC, 0 = never received.
     """

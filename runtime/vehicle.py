@@ -33,7 +33,7 @@ from .programs.mission_goals import RawMissionItem
 from .contract import HOVER, VelocityBodyYawspeed
 from .contract.frames import ned_to_enu, quat_ned_frd_to_enu_flu
 from .service.shutdown import in_daemon_thread
-from .velocity_bias import VelocityBias, setpoint_with_bias
+from .tracking import VelocityBias, setpoint_with_bias
 from .state import (
     MODE_HOLD,
     VehicleCommandError,
@@ -257,7 +257,7 @@ class Vehicle:
         """Send a body-frame velocity setpoint (FRD, m/s; yaw speed deg/s, + = turn right).
 
         MAVSDK sends it at once and then re-sends the last one at 20 Hz by itself.  The estimate's
-        velocity bias (``runtime.velocity_bias``) is added, so the vehicle flies ``cmd`` where the
+        velocity bias (``runtime.tracking.VelocityBias``) is added, so the vehicle flies ``cmd`` where the
         autopilot holds its estimate at the setpoint.
         """
         forward, right, down = cmd.forward_m_s, cmd.right_m_s, cmd.down_m_s

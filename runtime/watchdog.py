@@ -158,6 +158,10 @@ RETREAT_INTEGRAL_GAIN_PER_S2 = 0.3  # ... and per metre-second of it: cancels a 
 RETREAT_INTEGRAL_MAX_M_S = 0.8  # the integral term's largest velocity (no wind-up)
 RETREAT_MAX_SPEED_M_S = 1.0  # horizontal command limit
 RETREAT_ARRIVED_M = 0.15  # horizontal distance to the path's end that counts as arrived
+# Near the path's end the horizontal command is at most sqrt(2 * this * distance to the end): the
+# vehicle arrives slowly instead of at the integral's speed (on PX4 SIH it came in at 0.8 m/s and
+# coasted on past the end into an obstacle beside the path flown: 2 of 40 flights at levels 3 / 6).
+RETREAT_APPROACH_DECEL_M_S2 = 0.4
 RETREAT_CLIMB_GAIN_PER_S = 1.0  # vertical speed per metre of height error
 RETREAT_CLIMB_MAX_M_S = 0.3
 
@@ -178,16 +182,20 @@ def retreat_path(flown_enu_m: np.ndarray, distance_m: float) -> np.ndarray:
 
 class RetreatTracker:
     """Follows a reference point that moves along ``path`` (from :func:`retreat_path`) at
-    ``RETREAT_SPEED_M_S``: velocity = the reference's own + a PI term on the horizontal distance to
-    it (limited to ``RETREAT_MAX_SPEED_M_S``), vertical speed toward its height.
+    ``RETREAT_SPEED_M_S``: velocity = the reference's own + a P term on the horizontal distance to
+    it (limited to ``RETREAT_MAX_SPEED_M_S``, and near the path's end to what stops there at
+    ``RETREAT_APPROACH_DECEL_M_S2``), vertical speed toward its height.
 
-    The integral term is there for PX4: its velocity estimate can be off from the truth by
-    0.3-0.7 m/s at these speeds (SIH, measured: the estimate's position moved 1.2 m the other way
-    while its velocity said 0.35 m/s toward the target), so a velocity command alone can leave the
-    vehicle drifting the wrong way; the position error's integral commands what it takes."""
+    With ``integral`` an integral term on that distance is added: PX4's velocity estimate can be
+    off from the truth by 0.3-0.7 m/s at these speeds (SIH, measured: the estimate's position moved
+    1.2 m the other way while its velocity said 0.35 m/s toward the target), so a velocity command
+    alone can leave the vehicle drifting the wrong way; the integral commands what it takes.  The
+    runtime turns it off where it corrects that error itself (``runtime.tracking.VelocityBias``): there it
+    only winds up on the autopilot's lag and carries the vehicle past the end."""
 
-    def __init__(self, path_enu_m: np.ndarray) -> None:
+    def __init__(self, path_enu_m: np.ndarray, integral: bool = True) -> None:
         self.path = np.asarray(path_enu_m, dtype=np.float64)
+        self.integral = integral  # off where the runtime corrects the velocity estimate (runtime.tracking.VelocityBias)
         self._at_m = _arc_lengths_m(self.path)
         self.length_m = float(self._at_m[-1])
         self._integral = np.zeros(2)
@@ -207,15 +215,23 @@ class RetreatTracker:
         """The velocity to command now (world ENU m/s)."""
         point, feed = self.reference(elapsed_s)
         error = point[:2] - np.asarray(pos_enu_m, dtype=np.float64)[:2]
-        self._integral += error * dt_s
+        to_end_m = float(np.linalg.norm(self.path[-1, :2] - np.asarray(pos_enu_m, dtype=np.float64)[:2]))
+        speed_limit = min(RETREAT_MAX_SPEED_M_S, math.sqrt(2.0 * RETREAT_APPROACH_DECEL_M_S2 * to_end_m))
+        if self.integral:
+            self._integral += error * dt_s
         limit = RETREAT_INTEGRAL_MAX_M_S / RETREAT_INTEGRAL_GAIN_PER_S2
         norm = float(np.linalg.norm(self._integral))
         if norm > limit:
             self._integral *= limit / norm
-        horizontal = feed[:2] + RETREAT_POSITION_GAIN_PER_S * error + RETREAT_INTEGRAL_GAIN_PER_S2 * self._integral
+        horizontal = feed[:2] + RETREAT_POSITION_GAIN_PER_S * error
         speed = float(np.linalg.norm(horizontal))
-        if speed > RETREAT_MAX_SPEED_M_S:
-            horizontal *= RETREAT_MAX_SPEED_M_S / speed
+        if speed > speed_limit:
+            horizontal *= speed_limit / speed
+        if self.integral:
+            horizontal = horizontal + RETREAT_INTEGRAL_GAIN_PER_S2 * self._integral
+            speed = float(np.linalg.norm(horizontal))
+            if speed > RETREAT_MAX_SPEED_M_S:
+                horizontal *= RETREAT_MAX_SPEED_M_S / speed
         climb = float(np.clip(RETREAT_CLIMB_GAIN_PER_S * (point[2] - pos_enu_m[2]), -RETREAT_CLIMB_MAX_M_S, RETREAT_CLIMB_MAX_M_S))
         return np.array([horizontal[0], horizontal[1], climb])
 

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Keep what PX4 estimated and what SIH's ground truth said, in offboard, for a few recorded
 flights of `cmnav sitl --autopilot` (scripts/px4-campaign.sh's run directories): the fixture
-that tests runtime.velocity_bias on PX4's own estimates.
+that tests runtime.tracking.VelocityBias on PX4's own estimates.
 
     python scripts/px4-velocity-fixture.py RUN_DIR... -o tests/runtime/fixtures/px4_v1_16_velocity_bias.json
 """

@@ -40,7 +40,7 @@ import numpy as np
 
 from ..camera.sim_source import SimCameraSource
 from ..config import PolicyModelConfig, ProcessConfig, RecorderConfig, RuntimeConfig, VehicleConfig
-from ..velocity_bias import VELOCITY_BIAS_MODES
+from ..tracking import VELOCITY_BIAS_MODES
 from ..contract import ContractMismatchError
 from ..faults.catalogue import FaultKind, FaultSite, Injection, InjectionError, parse_injection
 from ..faults.injection import FaultyPolicy, shrink_geofence, shrink_geofence_at

@@ -115,7 +115,7 @@ def load_flight(run_dir: str | Path) -> RecordedFlight:
                     est["t"].append(m["t_posvel_ns"] * 1e-9)
                     est["pos"].append(placement.world_position(np.asarray(m["pos_enu_m"], dtype=np.float64)))
                     # The autopilot's own velocity: the runtime logs it less the bias it measured
-                    # (runtime.velocity_bias); logs from before that have no bias.
+                    # (runtime.tracking.VelocityBias); logs from before that have no bias.
                     bias = np.asarray(m.get("vel_bias_enu_m_s") or [0.0, 0.0, 0.0], dtype=np.float64)
                     vel = np.asarray(m["vel_enu_m_s"], dtype=np.float64) + bias
                     est["vel"].append(placement.world_from_local(vel))

@@ -81,7 +81,7 @@ def test_the_sitl_estimates_are_the_vehicles():
 
 def test_the_velocity_bias_modes_are_the_runtimes():
     from cmnav.cli import VELOCITY_BIAS_MODES
-    from runtime.velocity_bias import VELOCITY_BIAS_MODES as RUNTIME_MODES
+    from runtime.tracking import VELOCITY_BIAS_MODES as RUNTIME_MODES
 
     assert VELOCITY_BIAS_MODES == RUNTIME_MODES
 

@@ -1,4 +1,4 @@
-"""runtime.velocity_bias: the autopilot's velocity error measured against the rate of its own
+"""runtime.tracking.VelocityBias: the autopilot's velocity error measured against the rate of its own
 position estimate, on PX4 v1.16 SIH's recorded estimates and on constructed ones; the adapter
 corrects the state and every setpoint it sends by it."""
 
@@ -15,7 +15,7 @@ import pytest
 
 from runtime.config import ConfigError, VehicleConfig
 from runtime.contract import VelocityBodyYawspeed
-from runtime.velocity_bias import VelocityBias, setpoint_with_bias
+from runtime.tracking import VelocityBias, setpoint_with_bias
 from runtime.vehicle import Vehicle
 
 FIXTURE = Path(__file__).parent / "fixtures" / "px4_v1_16_velocity_bias.json"

@@ -37,11 +37,16 @@ for level in $LEVELS; do
     (cd "$rootfs" && PX4_SYS_AUTOSTART=10040 PX4_SIM_MODEL=sihsim_quadx exec "$build/bin/px4" -d "$build/etc" \
         >"$OUT/px4-logs/level${level}-seed${seed}.log" 2>&1 </dev/null) &
     px4_pid=$!
-    "$CMNAV" sitl --autopilot udp://127.0.0.1:14550 --model "$MODEL" --level "$level" --seed "$seed" \
-        --timeout "$TIMEOUT_S" --out "$OUT/runs" --json "${inject_args[@]}" 2>>"$OUT/sitl.log" \
-      | tail -n 1 >> "$OUT/summaries.jsonl" || true
+    summary=$("$CMNAV" sitl --autopilot udp://127.0.0.1:14550 --model "$MODEL" --level "$level" --seed "$seed" \
+        --timeout "$TIMEOUT_S" --out "$OUT/runs" --json "${inject_args[@]}" 2>>"$OUT/sitl.log" | tail -n 1) || true
     stop_px4
-    echo "level $level seed $seed: $(tail -n 1 "$OUT/summaries.jsonl" | "$PYTHON" -c 'import json,sys; r=json.loads(sys.stdin.read() or "{}"); print(r.get("outcome"), r.get("abort_reason"), r.get("time_s"))' 2>/dev/null)"
+    if [ -z "$summary" ]; then
+      # No episode (e.g. PX4's take-off never reached its height): not in the table; sitl.log says why.
+      echo "level $level seed $seed: no summary, not flown (see $OUT/sitl.log)"
+      continue
+    fi
+    echo "$summary" >> "$OUT/summaries.jsonl"
+    echo "level $level seed $seed: $(echo "$summary" | "$PYTHON" -c 'import json,sys; r=json.loads(sys.stdin.read() or "{}"); print(r.get("outcome"), r.get("abort_reason"), r.get("time_s"))' 2>/dev/null)"
   done
 done
 "$PYTHON" "$(dirname "$0")/campaign-table.py" "$OUT/summaries.jsonl"

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .contract import CONTROL_PERIOD_S, ActionLimits
+from .tracking import VELOCITY_BIAS_WINDOW_RANGE_S
 from .contract.constants import CAMERA_HEIGHT_PX, CAMERA_RATE_HZ, CAMERA_WIDTH_PX, MAX_INCLINATION_RAD, MAX_SPEED_M_S
 
 
@@ -241,7 +242,7 @@ class VehicleConfig:
         for key in ("connect_timeout_s", "command_timeout_s", "health_timeout_s", "takeoff_timeout_s", "land_timeout_s"):
             _positive(f"vehicle.{key}", getattr(self, key))
             _within(f"vehicle.{key}", getattr(self, key), 0.0, _VEHICLE_TIMEOUT_MAX_S[key], "s", "a wait that ends")
-        _within("vehicle.velocity_bias_window_s", self.velocity_bias_window_s, 0.05, 2.0, "s",
+        _within("vehicle.velocity_bias_window_s", self.velocity_bias_window_s, *VELOCITY_BIAS_WINDOW_RANGE_S, "s",
                 "a few estimates (PX4 sends ODOMETRY at ~10 Hz or faster)")  # fmt: skip
 
 

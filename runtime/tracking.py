@@ -14,10 +14,11 @@ Tilt: the angle between the body's up axis and the world's; above the bound for 
 window means flipped or tumbling (no velocity command of the contract needs it).
 
 Velocity bias (:class:`VelocityBias`): PX4's velocity controller holds its *estimated* velocity
-at the setpoint, so the vehicle really flies the setpoint less the estimate's velocity error.  On PX4 v1.16 SIH that error is large and
-slow (EKF2 follows the simulated GPS velocity; 0.17 / 0.32 / 0.19 m/s RMS in room x / y / z over 8
-offboard flights, correlated over ~1-2 s: docs/px4-sitl.md §5), while EKF2's *position* estimate
-moves with the truth: its rate over 0.3 s misses the true velocity by ~0.08-0.13 m/s.  An EKF's
+at the setpoint, so the vehicle really flies the setpoint less the estimate's velocity error.  On
+PX4 v1.16 SIH that error is large and slow (EKF2 follows the simulated GPS velocity; 0.17 / 0.32 /
+0.19 m/s RMS in room x / y / z over 8 offboard flights, correlated over ~1-2 s: docs/px4-sitl.md
+§5), while EKF2's *position* estimate moves with the truth: its rate over 0.3 s misses the true
+velocity by ~0.08-0.13 m/s.  An EKF's
 velocity and the rate of its position disagree only by what the position fusion keeps pulling
 back, so their difference over a short window is the velocity error the vehicle flies on top of
 the setpoint.
@@ -30,7 +31,8 @@ and adds ``bias`` to every velocity setpoint it sends (``runtime.vehicle.Vehicle
 vehicle's true velocity follows the command instead of the estimate.  A gap in the estimates or
 a position jump (an EKF reset) starts the window afresh with no bias.
 
-Pure numpy on numbers passed in (times in ``time.monotonic_ns``), so tests drive it directly.
+Pure numpy on numbers passed in (times in ``time.monotonic_ns``; the velocity bias's in the
+autopilot's clock, s), so tests drive it directly.
 """
 
 from __future__ import annotations
@@ -168,6 +170,10 @@ def tilt_rad(quat_enu_flu: np.ndarray) -> float:
 # `cmnav sitl --velocity-bias`: the runtime corrects the autopilot's velocity error, or flies it as reported.
 VELOCITY_BIAS_MODES = ("correct", "off")
 
+# The window VelocityBias averages over (s): a few estimates (PX4 sends ODOMETRY at ~10 Hz or faster)
+# and short beside the error's ~1-2 s correlation; vehicle.velocity_bias_window_s is held to it.
+VELOCITY_BIAS_WINDOW_RANGE_S = (0.05, 2.0)
+
 # A position step this much faster than the reported velocity explains is an estimator reset.
 RESET_SPEED_MARGIN_M_S = 3.0
 
@@ -176,8 +182,9 @@ class VelocityBias:
     """World-ENU velocity bias (m/s) of an autopilot's estimate; :meth:`update` on each new one."""
 
     def __init__(self, window_s: float = 0.3, max_m_s: float = 0.5, max_gap_s: float = 0.5) -> None:
-        if not 0.05 <= window_s <= 2.0:
-            raise ValueError(f"window_s={window_s} must be 0.05-2 s")
+        low_s, high_s = VELOCITY_BIAS_WINDOW_RANGE_S
+        if not low_s <= window_s <= high_s:
+            raise ValueError(f"window_s={window_s} must be {low_s}-{high_s} s")
         if not 0.0 <= max_m_s <= 2.0:
             raise ValueError(f"max_m_s={max_m_s} must be 0-2 m/s")
         self.window_s = window_s
@@ -234,6 +241,5 @@ def setpoint_with_bias(forward_m_s: float, right_m_s: float, down_m_s: float, bi
     """A body setpoint (PX4's yaw-only frame, FRD: forward, right, down, m/s) with the world-ENU
     ``bias`` added: what the autopilot must hold on its estimate for the vehicle to fly the
     setpoint."""
-    bx, by, bz = (float(v) for v in bias_enu_m_s)
-    c, s = math.cos(yaw_enu_rad), math.sin(yaw_enu_rad)
-    return forward_m_s + c * bx + s * by, right_m_s - (-s * bx + c * by), down_m_s - bz
+    bias_x, bias_y, bias_z = (float(v) for v in world_enu_to_vehicle(bias_enu_m_s, yaw_enu_rad))  # V: x fwd, y left, z up
+    return forward_m_s + bias_x, right_m_s - bias_y, down_m_s - bias_z

@@ -214,20 +214,20 @@ class RetreatTracker:
     def velocity_enu(self, pos_enu_m: np.ndarray, elapsed_s: float, dt_s: float) -> np.ndarray:
         """The velocity to command now (world ENU m/s)."""
         point, feed = self.reference(elapsed_s)
-        error = point[:2] - np.asarray(pos_enu_m, dtype=np.float64)[:2]
-        to_end_m = float(np.linalg.norm(self.path[-1, :2] - np.asarray(pos_enu_m, dtype=np.float64)[:2]))
+        pos_xy = np.asarray(pos_enu_m, dtype=np.float64)[:2]
+        error = point[:2] - pos_xy
+        to_end_m = float(np.linalg.norm(self.path[-1, :2] - pos_xy))
         speed_limit = min(RETREAT_MAX_SPEED_M_S, math.sqrt(2.0 * RETREAT_APPROACH_DECEL_M_S2 * to_end_m))
-        if self.integral:
-            self._integral += error * dt_s
-        limit = RETREAT_INTEGRAL_MAX_M_S / RETREAT_INTEGRAL_GAIN_PER_S2
-        norm = float(np.linalg.norm(self._integral))
-        if norm > limit:
-            self._integral *= limit / norm
         horizontal = feed[:2] + RETREAT_POSITION_GAIN_PER_S * error
         speed = float(np.linalg.norm(horizontal))
         if speed > speed_limit:
             horizontal *= speed_limit / speed
         if self.integral:
+            self._integral += error * dt_s
+            limit = RETREAT_INTEGRAL_MAX_M_S / RETREAT_INTEGRAL_GAIN_PER_S2
+            norm = float(np.linalg.norm(self._integral))
+            if norm > limit:
+                self._integral *= limit / norm
             horizontal = horizontal + RETREAT_INTEGRAL_GAIN_PER_S2 * self._integral
             speed = float(np.linalg.norm(horizontal))
             if speed > RETREAT_MAX_SPEED_M_S:

@@ -19,7 +19,9 @@ the episodes after the warm-up, never from durations:
   (N − warm-up) < ``--rss-growth-mb`` (the issue's bound: 10 MB from episode 10 to 200).  VmRSS
   is sampled and drawn too, but it also counts file-backed pages (the mapped model, libraries)
   that the kernel drops and faults back in with the page cache (seen: −68 MB in one episode);
-- fds, threads: slope × (N − warm-up) < 1 (constant: not one more per run);
+- fds, threads: slope × (N − warm-up) < ``COUNT_GROWTH_MAX`` (2): a leak adds one every episode or
+  few, without bound; a socket or thread that lingers an episode or two, or one opened once late,
+  steps the count by one and stays (a 10-episode CI run saw fds 14 → 15 at episode 9: fitted 1.07);
 - step p99: the median of the last ``warm-up`` episodes within ``--p99-tolerance`` of the first ones'
   (a benchmark's check: the CI test reports it and leaves it unjudged, its cores being shared);
 - log directory within its cap at every episode; every replayed log replays.
@@ -55,6 +57,10 @@ ROOT = Path(__file__).resolve().parents[1]
 READY_TIMEOUT_S = 60.0
 FAULTS = ("camera-stall", "telemetry-loss", "pilot-takeover", "camera-garbage", "vehicle-stuck")
 BYTES_PER_MB = 1e6
+# Fitted growth of the fd and thread counts over the episodes after the warm-up that is still no
+# leak: one permanent step of one (fits to at most ~1.3) passes; one more every second episode of
+# a 10-episode run fails, and over a 200-episode run anything faster than one more in 98.
+COUNT_GROWTH_MAX = 2.0
 
 
 class SoakError(RuntimeError):
@@ -192,8 +198,8 @@ def verdict(samples: list[EpisodeSample], warmup: int, rss_growth_mb: float, p99
     p99_ratio = float(np.median(last) / np.median(first)) if first and last else None
     checks = {
         "rss_growth_mb": (slopes["rss_anon_mb"] * span, slopes["rss_anon_mb"] * span < rss_growth_mb),
-        "fd_growth": (slopes["fds"] * span, slopes["fds"] * span < 1.0),
-        "thread_growth": (slopes["threads"] * span, slopes["threads"] * span < 1.0),
+        "fd_growth": (slopes["fds"] * span, slopes["fds"] * span < COUNT_GROWTH_MAX),
+        "thread_growth": (slopes["threads"] * span, slopes["threads"] * span < COUNT_GROWTH_MAX),
         "step_p99_last_over_first": (p99_ratio, p99_tolerance is None or p99_ratio is None
                                      or abs(p99_ratio - 1.0) <= p99_tolerance),
         "log_dir_within_cap": (max((s.log_dir_mb - s.log_cap_mb for s in samples), default=0.0),

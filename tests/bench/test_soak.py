@@ -33,6 +33,10 @@ def test_flat_curves_pass_and_each_growing_one_fails():
     assert not verdict(leaking, CI_WARMUP, CI_RSS_GROWTH_MB, 0.2)["checks"]["rss_growth_mb"]["ok"]
     fd_leak = _samples([300.0] * 10, fds=[40 + i for i in range(10)])
     assert not verdict(fd_leak, CI_WARMUP, CI_RSS_GROWTH_MB, 0.2)["checks"]["fd_growth"]["ok"]
+    lingering = _samples([300.0] * 10, fds=[14, 14, 15, 14, 14, 14, 14, 14, 15, 15])  # CI: one step, no leak
+    assert verdict(lingering, CI_WARMUP, CI_RSS_GROWTH_MB, 0.2)["checks"]["fd_growth"]["ok"]
+    fd_creep = _samples([300.0] * 10, fds=[14 + i // 2 for i in range(10)])
+    assert not verdict(fd_creep, CI_WARMUP, CI_RSS_GROWTH_MB, 0.2)["checks"]["fd_growth"]["ok"]
     thread_leak = _samples([300.0] * 10, threads=[30 + i // 2 for i in range(10)])
     assert not verdict(thread_leak, CI_WARMUP, CI_RSS_GROWTH_MB, 0.2)["checks"]["thread_growth"]["ok"]
     creeping = _samples([300.0] * 10, p99=[8.0, 8.0, 8.0, 9, 10, 11, 12, 13, 14, 15])

@@ -68,17 +68,18 @@ def main(argv: list[str] | None = None) -> int:
 def _replay(args: argparse.Namespace) -> int:
     try:
         flights = load_flights(args.runs)
-        result = {"estimate_error": estimate_error(flights),
+        result = {"estimate_error": estimate_error(flights), "corrected_estimate_error": estimate_error(flights, corrected=True),
                   "replay": {ref: replay_error(flights, PX4_SIH_V1_16, ref, args.horizon_s) for ref in REFERENCES}}  # fmt: skip
     except (FlightRecordError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    err = result["estimate_error"]
-    print(f"{err['flights']} flights, {err['samples']} estimates in offboard; estimate - truth (x, y, z):")
-    for key, label in (("bias_sd", "per-flight mean, sd over flights"), ("within_flight_sd", "about it, within a flight (sd)")):
-        print(f"  {label}: position {err[key]['position_m']} m, velocity {err[key]['velocity_m_s']} m/s")
-    for lag, values in err["autocorrelation"].items():
-        print(f"  autocorrelation at {lag} s: position {values['position_m']}, velocity {values['velocity_m_s']}")
+    for key, whose in (("estimate_error", "the autopilot's estimate"), ("corrected_estimate_error", "the runtime's corrected estimate")):
+        err = result[key]
+        print(f"{err['flights']} flights, {err['samples']} estimates in offboard; {whose} - truth (x, y, z):")
+        for stat, label in (("bias_sd", "per-flight mean, sd over flights"), ("within_flight_sd", "about it, within a flight (sd)")):
+            print(f"  {label}: position {err[stat]['position_m']} m, velocity {err[stat]['velocity_m_s']} m/s")
+        for lag, values in err["autocorrelation"].items():
+            print(f"  autocorrelation at {lag} s: position {values['position_m']}, velocity {values['velocity_m_s']}")
     for ref, rep in result["replay"].items():
         for at_s, e in rep["at_s"].items():
             print(f"PX4_SIH_V1_16 replayed against the {ref}, {at_s} s ahead ({rep['windows']} windows): "

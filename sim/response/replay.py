@@ -10,7 +10,8 @@ offboard and in the air only:
 - :func:`estimate_error`: estimate minus truth, position and velocity, world axes (x, y: the
   room's horizontal axes; z up): the spread of each flight's mean over the flights (the
   per-episode bias of ``sim.estimate``), the spread about it within a flight (the drift), its
-  autocorrelation;
+  autocorrelation; of the autopilot's estimate as it reported it, or (``corrected``) as the
+  runtime used it, less the velocity bias it measured (``runtime.tracking.VelocityBias``);
 - :func:`replay_error`: the logged commands flown through ``sim.dynamics``, the flight held to
   the record until a window starts (every ``every_s``), then free; the velocity (vehicle frame:
   forward, left, up) and heading ``horizon_s`` later against the truth's, or against the
@@ -72,13 +73,16 @@ class Track:
 
 @dataclass(frozen=True)
 class RecordedFlight:
-    """One flight: the truth, the estimate (in offboard, in the air) and the commands sent in
-    offboard, ``commands`` [M, 5]: t_s, forward, left, up (m/s, vehicle frame), yaw rate (rad/s, + =
+    """One flight: the truth, the estimate (in offboard, in the air) as the autopilot reported it
+    and as the runtime corrected it (its velocity less the bias the runtime measured; the same as
+    ``estimate`` in logs from before the correction), and the commands sent in offboard,
+    ``commands`` [M, 5]: t_s, forward, left, up (m/s, vehicle frame), yaw rate (rad/s, + =
     counter-clockwise)."""
 
     name: str
     truth: Track
     estimate: Track
+    corrected_estimate: Track
     commands: np.ndarray
 
 
@@ -104,7 +108,7 @@ def load_flight(run_dir: str | Path) -> RecordedFlight:
     except (OSError, ValueError, KeyError, TypeError) as err:
         raise FlightRecordError(f"{trace_path}: not a world follower's trace ({type(err).__name__}: {err}): pass the run "
                                 "directory of a `cmnav sitl --autopilot` flight (it writes trace.json)") from err  # fmt: skip
-    est: dict[str, list] = {"t": [], "pos": [], "vel": [], "yaw": []}
+    est: dict[str, list] = {"t": [], "pos": [], "vel": [], "corrected_vel": [], "yaw": []}
     commands, mode, in_air = [], "UNKNOWN", False
     try:
         reader = FlightLogReader(log_path)
@@ -114,11 +118,12 @@ def load_flight(run_dir: str | Path) -> RecordedFlight:
                 if mode == "OFFBOARD" and in_air and m["pos_enu_m"][0] is not None and m["vel_enu_m_s"][0] is not None:
                     est["t"].append(m["t_posvel_ns"] * 1e-9)
                     est["pos"].append(placement.world_position(np.asarray(m["pos_enu_m"], dtype=np.float64)))
-                    # The autopilot's own velocity: the runtime logs it less the bias it measured
+                    # The runtime logs the autopilot's velocity less the bias it measured
                     # (runtime.tracking.VelocityBias); logs from before that have no bias.
                     bias = np.asarray(m.get("vel_bias_enu_m_s") or [0.0, 0.0, 0.0], dtype=np.float64)
-                    vel = np.asarray(m["vel_enu_m_s"], dtype=np.float64) + bias
-                    est["vel"].append(placement.world_from_local(vel))
+                    corrected = np.asarray(m["vel_enu_m_s"], dtype=np.float64)
+                    est["vel"].append(placement.world_from_local(corrected + bias))
+                    est["corrected_vel"].append(placement.world_from_local(corrected))
                     est["yaw"].append(placement.world_yaw(float(m["yaw_enu_rad"])))
             elif mode == "OFFBOARD" and m["sent"]:
                 commands.append(((log_time_ns - reader.offset_ns) * 1e-9, m["forward_m_s"], -m["right_m_s"], -m["down_m_s"],
@@ -128,7 +133,8 @@ def load_flight(run_dir: str | Path) -> RecordedFlight:
     if len(est["t"]) < 2 or len(commands) < 2:
         raise NeverFlewError(f"{log_path}: {len(est['t'])} estimates and {len(commands)} commands in offboard: "
                                 "the flight never flew the policy (see its runtime.log)")  # fmt: skip
-    return RecordedFlight(run_dir.name, truth, _track(est["t"], est["pos"], est["vel"], est["yaw"]), np.asarray(commands))
+    return RecordedFlight(run_dir.name, truth, _track(est["t"], est["pos"], est["vel"], est["yaw"]),
+                          _track(est["t"], est["pos"], est["corrected_vel"], est["yaw"]), np.asarray(commands))  # fmt: skip
 
 
 def load_flights(paths: list[str | Path]) -> list[RecordedFlight]:
@@ -154,15 +160,17 @@ def _within_truth(flight: RecordedFlight) -> np.ndarray:
     return (t >= flight.truth.t_s[0]) & (t <= flight.truth.t_s[-1])
 
 
-def estimate_error(flights: list[RecordedFlight]) -> dict:
-    """Estimate minus truth at the estimate's times; per axis x, y, z (see the module doc)."""
+def estimate_error(flights: list[RecordedFlight], corrected: bool = False) -> dict:
+    """Estimate minus truth at the estimate's times; per axis x, y, z (see the module doc).
+    ``corrected``: the estimate as the runtime used it (velocity less its measured bias)."""
     per_flight = []
     for f in flights:
         keep = _within_truth(f)
-        pos, vel, _ = f.truth.at(f.estimate.t_s[keep])
-        error = np.concatenate([f.estimate.pos_enu_m[keep] - pos, f.estimate.vel_enu_m_s[keep] - vel], axis=1)
+        estimate = f.corrected_estimate if corrected else f.estimate
+        pos, vel, _ = f.truth.at(estimate.t_s[keep])
+        error = np.concatenate([estimate.pos_enu_m[keep] - pos, estimate.vel_enu_m_s[keep] - vel], axis=1)
         if len(error) >= 2:
-            per_flight.append((f.estimate.t_s[keep], error))
+            per_flight.append((estimate.t_s[keep], error))
     if not per_flight:
         raise FlightRecordError("no flight has estimates within its ground truth's time span")
     means = np.stack([e.mean(axis=0) for _, e in per_flight])

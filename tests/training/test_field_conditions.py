@@ -20,7 +20,7 @@ from runtime.contract.constants import CONTROL_PERIOD_S, MAX_INCLINATION_RAD, MA
 from sim.delay import DelayLine, delay_steps
 from sim.dynamics import (PER_ENV_PARAMS, PX4_SIH_V1_16, CommandDelay, DynamicsRandomization, QuadrotorDynamics, QuadState,
                           sample_dynamics)  # fmt: skip
-from sim.estimate import StateEstimateConfig, StateEstimator
+from sim.estimate import PX4_EKF2_CORRECTED, StateEstimateConfig, StateEstimator
 from sim.rotations import rotate_about_z
 from training.checkpoint import checkpoint_fingerprint, save_weights
 from training.cmwae.model import Cmwae, make_config
@@ -28,7 +28,7 @@ from training.policy.contract_torch import action_to_velocity_flu_batch
 from training.policy.dagger import DaggerConfig
 from training.policy.env import NavEnv, NavEnvConfig
 from training.policy.evaluate import PolicyEvalConfig, evaluate_policy, table2_env
-from training.policy.field import FieldConfigError, field_action_limits, field_env_overrides
+from training.policy.field import FieldConfigError, field_action_limits, field_env_overrides, px4_vehicle_env_overrides
 from training.policy.network import POLICY_SIZES, ActorCritic
 
 pytestmark = pytest.mark.timeout(300)
@@ -180,26 +180,29 @@ def test_state_estimate_is_the_truth_delayed_plus_bias_and_noise():
     assert float(roll_pitch.std()) == pytest.approx(math.hypot(config.attitude_noise_rad, config.attitude_bias_rad), rel=0.15)
 
 
-def test_state_estimate_drift_wanders_with_its_measured_size_and_correlation_time():
+def test_state_estimate_drift_wanders_with_its_measured_size_and_correlation_times():
     """The drift is PX4 SIH's wandering error: stationary from the first step (drawn at reset), its
-    spread per axis as configured, its autocorrelation exp(-lag / drift_correlation_s)."""
+    spread per axis as configured, its autocorrelation exp(-lag / correlation time), position's and
+    velocity's each their own (the runtime-corrected velocity's is short: 0.7 s against 2.5 s)."""
     dt_s = CONTROL_PERIOD_S / 7
     n = 2048
-    config = StateEstimateConfig()
+    config = PX4_EKF2_CORRECTED
+    assert config.velocity_drift_correlation_s < config.drift_correlation_s
     estimator = StateEstimator(config, n, dt_s)
     gen = torch.Generator().manual_seed(1)
     state = QuadState.at_rest(torch.zeros(n, 3))
     estimator.reset(torch.arange(n), state, gen)
     start = estimator.drift.clone()
-    lag_steps = round(config.drift_correlation_s / dt_s)
-    for _ in range(lag_steps):
+    lag_s = config.velocity_drift_correlation_s
+    for _ in range(round(lag_s / dt_s)):
         estimator.record(state, gen)
     later = estimator.drift
     expected_sd = torch.tensor([*config.position_drift_m[:1] * 2, config.position_drift_m[1], *config.velocity_drift_m_s[:1] * 2, config.velocity_drift_m_s[1]])
     for drift in (start, later):
         torch.testing.assert_close(drift.std(dim=0), expected_sd, rtol=0.08, atol=0.0)
     correlation = (start * later).mean(dim=0) / (start.std(dim=0) * later.std(dim=0))
-    assert float((correlation - math.exp(-1.0)).abs().max()) < 0.08, correlation
+    expected = torch.tensor([math.exp(-lag_s / config.drift_correlation_s)] * 3 + [math.exp(-1.0)] * 3)
+    assert float((correlation - expected).abs().max()) < 0.08, correlation
     # The estimate carries it: position error = bias + drift (+ noise); the bias stays, the drift moves.
     est = estimator.estimate(gen)
     error = est.pos_enu_m - estimator._line.read(estimator.delay_steps)[:, 0:3]
@@ -350,3 +353,12 @@ def test_field_training_on_the_parametric_stereo_uses_it_and_costs_less(encoder)
     assert env.stage_seconds["stereo"] > 0.0  # the stand-in ran, timed where the stereo path is
     with pytest.raises(ValueError, match="field_depth"):
         DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", field_depth="lidar").validate()
+
+
+def test_the_px4_vehicle_flies_the_estimate_as_the_shipped_runtime_corrects_it():
+    """The runtime's contract wins: it corrects PX4's velocity estimate by default, so training's
+    PX4 (Table II's ``px4``/``field``, ``--vehicle px4``) flies the corrected estimate's error."""
+    from runtime.config import VehicleConfig
+
+    assert VehicleConfig().velocity_bias_correction
+    assert px4_vehicle_env_overrides()["state_estimate"] == PX4_EKF2_CORRECTED

@@ -26,7 +26,7 @@ from pathlib import Path
 from runtime.contract.action import ActionLimits, LimitError
 from runtime.contract.constants import EPISODE_DURATION_S, MAX_SPEED_M_S
 from sim.dynamics import PX4_SIH_V1_16, DynamicsRandomization
-from sim.estimate import StateEstimateConfig
+from sim.estimate import PX4_EKF2_CORRECTED
 from sim.sensor.gray import GrayCameraConfig
 
 if sys.version_info >= (3, 11):
@@ -81,14 +81,15 @@ def check_vehicle(vehicle: str) -> None:
 
 def px4_vehicle_env_overrides() -> dict:
     """The field's vehicle alone: image-to-command latency, PX4 v1.16's identified response and
-    command delays (randomized per episode) and EKF2-like estimates, at the contract's speeds and
-    with the trained camera (what `cmnav sitl --autopilot` flies on PX4: rendered depth, no caps).
+    command delays (randomized per episode) and EKF2-like estimates as the runtime corrects them
+    (:data:`sim.estimate.PX4_EKF2_CORRECTED`), at the contract's speeds and with the trained camera
+    (what `cmnav sitl --autopilot` flies on PX4: rendered depth, no caps).
     Table II's ``px4`` condition and DAgger's ``--vehicle px4``."""
     return {
         "latency_range_s": IMAGE_TO_COMMAND_LATENCY_S,
         "dynamics": replace(PX4_SIH_V1_16, ground_contact=False),
         "dynamics_randomization": DynamicsRandomization(),
-        "state_estimate": StateEstimateConfig(),
+        "state_estimate": PX4_EKF2_CORRECTED,
     }
 
 

@@ -36,8 +36,11 @@ PLACEMENT = {"home_local_enu_m": [0.5, -1.0, 0.0], "heading_local_enu_rad": 0.4,
 LOCAL = Placement(np.asarray(PLACEMENT["home_local_enu_m"]), PLACEMENT["heading_local_enu_rad"], np.asarray(PLACEMENT["origin_world_enu_m"]))
 
 
-def _record_flight(run_dir: Path, vel_error_enu_m_s: np.ndarray, pos_error_enu_m: np.ndarray, offboard: bool = True) -> None:
-    """Fly the policy-like commands offline; the autopilot holds truth + vel_error at the setpoint."""
+def _record_flight(run_dir: Path, vel_error_enu_m_s: np.ndarray, pos_error_enu_m: np.ndarray, offboard: bool = True,
+                   runtime_bias_enu_m_s: np.ndarray | None = None) -> None:  # fmt: skip
+    """Fly the policy-like commands offline; the autopilot holds truth + vel_error at the setpoint.
+    ``runtime_bias_enu_m_s``: the runtime measured this bias and logged the estimate less it."""
+    bias = np.zeros(3) if runtime_bias_enu_m_s is None else runtime_bias_enu_m_s
     t_cmd, cmd_v, _ = command_schedule(policy_like_segments(duration_s=8.0))
     dynamics, delay = QuadrotorDynamics(PX4_SIH_V1_16), CommandDelay(PX4_SIH_V1_16)
     state = QuadState.at_rest(torch.tensor([[1.0, 1.0, 2.0]], dtype=torch.float64), HEADING_RAD)
@@ -62,7 +65,8 @@ def _record_flight(run_dir: Path, vel_error_enu_m_s: np.ndarray, pos_error_enu_m
             vel = state.vel_enu_m_s[0].numpy() + vel_error_enu_m_s
             local_yaw = yaw + PLACEMENT["heading_local_enu_rad"]
             quat = quat_from_euler(torch.zeros(1), torch.zeros(1), torch.tensor([local_yaw]))[0].numpy()
-            recorder.log_state(t_ns, VehicleState(pos_enu_m=LOCAL.local_position(pos), vel_enu_m_s=LOCAL.local_from_world(vel),
+            recorder.log_state(t_ns, VehicleState(pos_enu_m=LOCAL.local_position(pos), vel_enu_m_s=LOCAL.local_from_world(vel - bias),
+                                                  vel_bias_enu_m_s=LOCAL.local_from_world(bias),
                                                   t_posvel_ns=t_ns, quat_enu_flu=quat, t_att_ns=t_ns,
                                                   flight_mode="OFFBOARD" if offboard else "POSCTL", in_air=True))  # fmt: skip
         if i % round(TRUTH_DT_S / PHYSICS_DT_S) == 0:
@@ -81,7 +85,8 @@ def _record_flight(run_dir: Path, vel_error_enu_m_s: np.ndarray, pos_error_enu_m
 def campaign(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("campaign")
     _record_flight(root / "runs" / "a", np.array([0.3, -0.2, 0.1]), np.array([0.2, 0.0, -0.3]))
-    _record_flight(root / "runs" / "b", np.array([-0.1, 0.2, -0.1]), np.array([0.0, 0.0, 0.1]))
+    _record_flight(root / "runs" / "b", np.array([-0.1, 0.2, -0.1]), np.array([0.0, 0.0, 0.1]),
+                   runtime_bias_enu_m_s=np.array([-0.1, 0.15, 0.0]))  # fmt: skip
     _record_flight(root / "runs" / "c-never-in-offboard", np.zeros(3), np.zeros(3), offboard=False)
     return root
 
@@ -94,6 +99,10 @@ def test_the_estimates_error_is_found_in_the_rooms_frame(campaign):
     np.testing.assert_allclose(err["bias_sd"]["velocity_m_s"], [0.2, 0.2, 0.1], atol=0.01)
     np.testing.assert_allclose(err["bias_sd"]["position_m"], [0.1, 0.0, 0.2], atol=0.01)
     np.testing.assert_allclose(err["within_flight_sd"]["velocity_m_s"], [0.0, 0.0, 0.0], atol=0.01)
+    # As the runtime used it: flight b's velocity less the bias it measured (-0.1, 0.15, 0), a's as is.
+    corrected = estimate_error(flights, corrected=True)
+    np.testing.assert_allclose(corrected["bias_sd"]["velocity_m_s"], [0.15, 0.125, 0.1], atol=0.01)
+    assert corrected["bias_sd"]["position_m"] == err["bias_sd"]["position_m"]
 
 
 def test_the_model_predicts_the_estimate_the_autopilot_holds_not_the_truth(campaign):

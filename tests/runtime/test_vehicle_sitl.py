@@ -1,7 +1,9 @@
 """runtime.vehicle against the SITL vehicle (``python -m sim.sitl``) over loopback: one mission,
 in order — connect, health, arm, takeoff, offboard, body velocity, the action mapping's signs
 (positive yaw action turns left, positive inclination action climbs), the pilot leaving
-offboard mid-flight, Hold, land.  One SITL process and one event loop for the whole module."""
+offboard mid-flight, Hold, land.  One SITL process and one event loop, and one test: each step
+needs the vehicle the step before left (xdist's load distribution split them across workers when
+they were tests of their own)."""
 
 import asyncio
 import json
@@ -65,9 +67,9 @@ class Mission:
             self.log.close()
 
 
-@pytest.fixture(scope="module")
-def mission(tmp_path_factory):
-    m = Mission(tmp_path_factory.mktemp("sitl"))
+@pytest.fixture
+def mission(tmp_path):
+    m = Mission(tmp_path)
     try:
         yield m
     finally:
@@ -83,7 +85,7 @@ async def _hold_command(vehicle: Vehicle, action: np.ndarray, duration_s: float)
         await asyncio.sleep(1 / 15)
 
 
-def test_connect_and_health(mission):
+def _connect_and_health(mission):
     mission.run(mission.vehicle.connect())
     state = mission.run(mission.vehicle.wait_ready())
     assert state.health.armable and state.health.local_position_ok
@@ -93,7 +95,7 @@ def test_connect_and_health(mission):
     assert state.t_telemetry_ns > 0 and time.monotonic_ns() - state.t_telemetry_ns < 1e9
 
 
-def test_arm_and_takeoff(mission):
+def _arm_and_takeoff(mission):
     alt_m = mission.episode["takeoff_alt_m"]
     vehicle = mission.vehicle
     mission.run(vehicle.arm())
@@ -103,7 +105,7 @@ def test_arm_and_takeoff(mission):
     assert state.height_above_home_m == pytest.approx(alt_m, abs=0.35)
 
 
-def test_offboard_forward_body_velocity(mission):
+def _offboard_forward_body_velocity(mission):
     vehicle = mission.vehicle
     mission.run(vehicle.start_offboard(HOVER))
     mission.run(vehicle.wait_until(lambda s: s.flight_mode == MODE_OFFBOARD, 5.0, "offboard"))
@@ -121,7 +123,7 @@ def test_offboard_forward_body_velocity(mission):
     mission.run(_hold_command(vehicle, np.array([-1.0, 0.0, 0.0]), 1.0))  # speed 0: brake
 
 
-def test_positive_yaw_action_turns_left(mission):
+def _positive_yaw_action_turns_left(mission):
     vehicle = mission.vehicle
     yaw_before = vehicle.state().yaw_enu_rad
     mission.run(_hold_command(vehicle, np.array([-1.0, 0.0, 0.5]), 1.5))  # no speed, a3 = +0.5
@@ -132,7 +134,7 @@ def test_positive_yaw_action_turns_left(mission):
     mission.run(_hold_command(vehicle, np.array([-1.0, 0.0, -0.5]), 1.5))  # turn back toward the room's length
 
 
-def test_positive_inclination_action_climbs(mission):
+def _positive_inclination_action_climbs(mission):
     vehicle = mission.vehicle
     z_before = vehicle.state().pos_enu_m[2]
     mission.run(_hold_command(vehicle, np.array([-0.5, 1.0, 0.0]), 1.2))  # 0.5 m/s at +45 deg
@@ -142,7 +144,7 @@ def test_positive_inclination_action_climbs(mission):
     mission.run(_hold_command(vehicle, np.array([-1.0, 0.0, 0.0]), 1.0))
 
 
-def test_pilot_leaving_offboard_stops_the_loop(mission, tmp_path):
+def _pilot_leaving_offboard_stops_the_loop(mission, tmp_path):
     """Someone else (here: a Hold command, as a GCS or the RC switch would) takes the vehicle out
     of offboard while the loop flies: the loop stops commanding at once and sends nothing more."""
     vehicle = mission.vehicle
@@ -175,9 +177,20 @@ def test_pilot_leaving_offboard_stops_the_loop(mission, tmp_path):
     assert vehicle.state().flight_mode == MODE_HOLD
 
 
-def test_land_and_disarm(mission):
+def _land_and_disarm(mission):
     vehicle = mission.vehicle
     mission.run(vehicle.land())
     state = mission.run(vehicle.wait_disarmed(), 60.0)
     assert not state.armed and not state.in_air
     assert state.height_above_home_m < 0.2
+
+
+@pytest.mark.timeout(240)
+def test_one_mission_in_order(mission, tmp_path):
+    _connect_and_health(mission)
+    _arm_and_takeoff(mission)
+    _offboard_forward_body_velocity(mission)
+    _positive_yaw_action_turns_left(mission)
+    _positive_inclination_action_climbs(mission)
+    _pilot_leaving_offboard_stops_the_loop(mission, tmp_path)
+    _land_and_disarm(mission)

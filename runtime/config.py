@@ -478,6 +478,10 @@ class MissionConfig:
     # (m, horizontal) before landing, clear of the wall or obstacle the goal lies near: PX4's Hold
     # and Land drift up to ~1.1 m while descending (docs/px4-sitl.md §8).  0 = land where it stopped.
     land_retreat_m: float = 1.5
+    # With allow_arm_takeoff: then land under the runtime's own control (offboard, descending while
+    # its corrected velocity is held at zero horizontally) instead of the autopilot's Land, which
+    # holds the position *estimate* and drifted 0.2-1 m with it while descending on PX4 SIH.
+    land_in_offboard: bool = True
 
     def __post_init__(self) -> None:
         _require(self.goal_source in GOAL_SOURCES, "mission.goal_source", self.goal_source, f"one of {', '.join(GOAL_SOURCES)}")
@@ -500,6 +504,7 @@ class MissionConfig:
         _within("mission.max_episodes", self.max_episodes, 0, 100_000, "", "0 = until stopped")
         _require(0.0 < self.takeoff_alt_m <= 50.0, "mission.takeoff_alt_m", self.takeoff_alt_m, "in (0, 50] m above home")
         _within("mission.land_retreat_m", self.land_retreat_m, 0.0, 10.0, "m", "0 = land where the vehicle stopped")
+        _require(isinstance(self.land_in_offboard, bool), "mission.land_in_offboard", self.land_in_offboard, "true or false")
         _require(
             isinstance(self.max_episodes, int) and self.max_episodes >= 0,
             "mission.max_episodes",

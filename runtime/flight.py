@@ -56,6 +56,8 @@ from .slots import LatestSlot
 from .state import MODE_OFFBOARD, VehicleError, VehicleState
 from .timing import StageTimes
 from .watchdog import (
+    LAND_DESCENT_M_S,
+    LAND_DISARM_WAIT_S,
     RETREAT_SPEED_M_S,
     RetreatTracker,
     TripCause,
@@ -64,6 +66,8 @@ from .watchdog import (
     brake_ended,
     brake_record,
     brake_setpoint,
+    descent_setpoint,
+    descent_time_limit_s,
     retreat_path,
 )
 
@@ -176,7 +180,9 @@ class FlightLoop:
         self._memory = PolicyMemory(model)
         self._step_started_ns = 0
         self._flown_enu_m: list[np.ndarray] = []  # the estimate at each step of the episode (local ENU m)
-        self.handed_over_in_retreat = False  # a mode other than offboard came during the last retreat
+        self.handed_over_after_goal = False  # a mode other than offboard came during the last retreat or landing
+        self.landing_in_offboard = False  # the last episode's landing in offboard began (:meth:`descend`)
+        self.on_landing: Callable[[], None] | None = None  # called when it begins (a program's phase)
         self._background: list[asyncio.Task] = []
         # The result of the last :meth:`fly` that was cancelled (None if it returned).
         self.interrupted: EpisodeResult | None = None
@@ -218,12 +224,13 @@ class FlightLoop:
         except VehicleError as err:
             log.error("safe stop failed (%s): MAVSDK stops re-sending on close, PX4's offboard-loss failsafe follows", err)
 
-    async def brake_then_hold(self, retreat_m: float = 0.0) -> dict | None:
+    async def brake_then_hold(self, retreat_m: float = 0.0, land: bool = False) -> dict | None:
         """Brake (``runtime.watchdog.brake_setpoint`` at the control rate) until the vehicle has
         stopped (``runtime.watchdog.brake_ended``), then Hold; returns the brake's record (None if
         the pilot has the vehicle: nothing sent).  With ``retreat_m`` > 0 and the vehicle stopped,
-        :meth:`retreat` and brake again before the Hold (the record's ``retreat``).
-        Raises VehicleError if a command fails."""
+        :meth:`retreat` and brake again before the Hold (the record's ``retreat``).  With ``land``
+        and the vehicle stopped, :meth:`descend` instead of the Hold (the record's ``descent``);
+        Hold only if it did not reach the ground.  Raises VehicleError if a command fails."""
         record = await self._brake()
         if record is None:
             return None
@@ -232,6 +239,13 @@ class FlightLoop:
             if retreat is None or (record := await self._brake()) is None:
                 return None
             record["retreat"] = retreat
+        if land and record["ended"] == "stopped":
+            descent = await self.descend()
+            if descent is None:
+                return None
+            record["descent"] = descent
+            if descent["ended"] in ("landed", "disarmed"):
+                return record
         await self.gate.hold()
         return record
 
@@ -287,7 +301,7 @@ class FlightLoop:
                 # A pilot (or the autopilot's failsafe) took the vehicle: nothing more is sent, no Hold either.
                 log.warning("flight mode %s during the retreat: the vehicle is no longer the runtime's", state.flight_mode)
                 self.gate.release()
-                self.handed_over_in_retreat = True
+                self.handed_over_after_goal = True
                 return None
             if now_ns - state.t_telemetry_ns > stale_ns:
                 ended = "stale_telemetry"
@@ -310,6 +324,59 @@ class FlightLoop:
         log.info("retreat: %s", record)
         return record
 
+    async def descend(self) -> dict | None:
+        """Land under the runtime's control (``runtime.watchdog.LAND_DESCENT_M_S``): down at that
+        speed, horizontally the brake's law on the measured (corrected) velocity, at the control
+        rate, until the autopilot disarms on its land detector ("disarmed"), or ``LAND_DISARM_WAIT_S``
+        after it reported the touch-down without disarming ("landed": the dry run's Land disarms
+        it); "timeout" when no touch-down is reported within :func:`runtime.watchdog.descent_time_limit_s`,
+        "stale_telemetry" when the estimate goes stale (both: Hold follows, then the dry run's Land).  Returns its record
+        {ended, drift_m (horizontal, by the estimate), duration_s}; None once the pilot has the
+        vehicle (the gate released, or a mode other than offboard reported during it)."""
+        self.landing_in_offboard = True
+        if self.on_landing is not None:
+            self.on_landing()
+        start = self.vehicle.state()
+        t0_ns = time.monotonic_ns()
+        limit_ns = t0_ns + int(descent_time_limit_s(start) * _NS_PER_S)
+        stale_ns = int(self.config.watchdog.telemetry_stale_ms * _NS_PER_MS)
+        t_landed_ns = None
+        log.info("landing in offboard from %.2f m above home at %.2f m/s", start.height_above_home_m, LAND_DESCENT_M_S)
+        while True:
+            state, now_ns = self.vehicle.state(), time.monotonic_ns()
+            if self.gate.released:
+                return None
+            if state.flight_mode != MODE_OFFBOARD and state.t_mode_ns > t0_ns:
+                log.warning("flight mode %s during the landing: the vehicle is no longer the runtime's", state.flight_mode)
+                self.gate.release()
+                self.handed_over_after_goal = True
+                return None
+            if not state.armed:
+                ended = "disarmed"
+                break
+            if t_landed_ns is None and not state.in_air:
+                t_landed_ns = now_ns
+                log.info("touch-down reported after %.2f s", (now_ns - t0_ns) / _NS_PER_S)
+            if t_landed_ns is not None and now_ns - t_landed_ns >= LAND_DISARM_WAIT_S * _NS_PER_S:
+                ended = "landed"
+                break
+            if t_landed_ns is None and now_ns >= limit_ns:
+                ended = "timeout"
+                break
+            if now_ns - state.t_telemetry_ns > stale_ns:
+                ended = "stale_telemetry"
+                break
+            cmd = descent_setpoint(state, now_ns, self.config.watchdog)
+            sent = await self.gate.send_own(cmd)
+            if self.recorder is not None:
+                self.recorder.log_command(time.monotonic_ns(), None, mavsdk_to_velocity_flu(cmd), cmd, "landing", sent)
+            await self._sleep_alive(CONTROL_PERIOD_S)
+        end = self.vehicle.state()
+        record = {"ended": ended, "drift_m": round(float(np.linalg.norm(end.pos_enu_m[:2] - start.pos_enu_m[:2])), 3),
+                  "duration_s": round((time.monotonic_ns() - t0_ns) / _NS_PER_S, 3)}  # fmt: skip
+        log.info("landing in offboard: %s", record)
+        return record
+
     def set_goal(self, goal_enu_m: np.ndarray) -> None:
         """New goal (local ENU, m): the GRU state resets."""
         self._goal_enu_m = np.asarray(goal_enu_m, dtype=np.float64).copy()
@@ -325,15 +392,16 @@ class FlightLoop:
 
     # ------------------------------------------------------------------ one episode
 
-    async def fly(self, goal_enu_m: np.ndarray, timeout_s: float, retreat_m: float = 0.0) -> EpisodeResult:
+    async def fly(self, goal_enu_m: np.ndarray, timeout_s: float, landing_next: bool = False) -> EpisodeResult:
         """Fly the policy from now (offboard active) to ``goal_enu_m`` (local ENU, m).  With
-        ``retreat_m`` > 0 (a dry run about to land), a goal reached is followed by the brake, a
-        retreat of that length back along the path flown (:meth:`retreat`), the brake again, then Hold."""
+        ``landing_next`` (a dry run's last goal), a goal reached is followed by the brake, a retreat
+        of ``mission.land_retreat_m`` back along the path flown (:meth:`retreat`), the brake again,
+        then the landing in offboard (:meth:`descend`, ``mission.land_in_offboard``) or Hold."""
         self.set_goal(goal_enu_m)
         settle_heap()
-        episode = _Episode(t0_ns=time.monotonic_ns(), timeout_s=timeout_s, retreat_m=retreat_m)
+        episode = _Episode(t0_ns=time.monotonic_ns(), timeout_s=timeout_s, landing_next=landing_next)
         self._flown_enu_m = []
-        self.handed_over_in_retreat = False
+        self.handed_over_after_goal = self.landing_in_offboard = False
         self.watchdog.start(episode.t0_ns, self.vehicle.state())
         self._on_watchdog_event({"event": "start", "detail": repr(self.config.watchdog), "t_s": 0.0})
         log.info("episode start: goal %s (local ENU m), time limit %.1f s", np.round(self._goal_enu_m, 2), timeout_s)
@@ -383,7 +451,9 @@ class FlightLoop:
         # Goal reached or out of time: brake, then Hold, as the watchdog would (but not a trip).
         self.watchdog.stop()
         try:
-            episode.brake = await self.brake_then_hold(episode.retreat_m if episode.outcome == "success" else 0.0)
+            landing = episode.outcome == "success" and episode.landing_next
+            mission = self.config.mission
+            episode.brake = await self.brake_then_hold(mission.land_retreat_m if landing else 0.0, landing and mission.land_in_offboard)
         except VehicleError as err:
             log.error("hover/Hold at the end of the episode failed: %s", err)
             episode.abort_reason = f"end of episode hover/Hold failed: {err}"
@@ -634,7 +704,7 @@ class _Episode:
     t_end_ns: int | None = None
     timing: StageTimes = field(default_factory=StageTimes)
     brake: dict | None = None
-    retreat_m: float = 0.0  # after a goal reached (FlightLoop.fly)
+    landing_next: bool = False  # a dry run's last goal (FlightLoop.fly)
     ended: asyncio.Future = field(default_factory=lambda: asyncio.get_running_loop().create_future())
 
     def finish(self, outcome: str, reason: str | None, t_ns: int) -> None:

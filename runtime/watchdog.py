@@ -150,6 +150,34 @@ def brake_setpoint(vehicle: VehicleState, now_ns: int, config: WatchdogConfig) -
     return velocity_flu_to_mavsdk(np.array([setpoint[0], setpoint[1], setpoint[2], 0.0]))
 
 
+# The dry run's landing after its last goal (``mission.land_in_offboard``): PX4's Land holds its
+# *position estimate*, which carried the vehicle 0.2-1 m sideways while it descended on PX4 SIH,
+# into obstacles beside the goal (docs/px4-sitl.md §8).  The runtime descends in offboard instead,
+# holding its own (corrected) velocity at zero horizontally with the brake's law, until the
+# autopilot reports the touch-down, and leaves the disarm to the autopilot's land detector.
+LAND_DESCENT_M_S = 0.5  # PX4's land detector needs a commanded descent >= 1.1 x LNDMC_Z_VEL_MAX (0.25 m/s)
+# Beyond height / LAND_DESCENT_M_S until the touch-down is reported: PX4 SIH's land detector took
+# 3.8 s after 2.9 s of descent from 1.5 m (its maybe-landed and landed stages).
+LAND_DESCENT_TIME_MARGIN_S = 8.0
+LAND_DESCENT_UNKNOWN_HEIGHT_M = 5.0  # the height assumed when the autopilot has reported no home
+LAND_DISARM_WAIT_S = 4.0  # after the touch-down report, for the autopilot's own disarm (PX4: COM_DISARM_LAND, 2 s)
+
+
+def descent_setpoint(vehicle: VehicleState, now_ns: int, config: WatchdogConfig) -> VelocityBodyYawspeed:
+    """The landing descent's setpoint: the brake's horizontal setpoint (:func:`brake_setpoint`:
+    against the measured velocity, zero when it is stale) and down at ``LAND_DESCENT_M_S``."""
+    return dataclasses.replace(brake_setpoint(vehicle, now_ns, config), down_m_s=LAND_DESCENT_M_S)
+
+
+def descent_time_limit_s(vehicle: VehicleState) -> float:
+    """How long the descent may take until the touch-down is reported: its height at
+    ``LAND_DESCENT_M_S`` plus the margin."""
+    height_m = vehicle.height_above_home_m
+    if not math.isfinite(height_m):
+        height_m = LAND_DESCENT_UNKNOWN_HEIGHT_M
+    return max(height_m, 0.0) / LAND_DESCENT_M_S + LAND_DESCENT_TIME_MARGIN_S
+
+
 # Landing clear of what lay ahead (docs/px4-sitl.md §8): after the goal a dry run flies back along
 # the path it came by (free: it was just flown) before its landing, slowly, at the height it stopped.
 RETREAT_SPEED_M_S = 0.5  # the reference point's speed back along the path

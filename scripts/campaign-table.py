@@ -44,8 +44,9 @@ def contact_while_landing(r: dict) -> bool:
 
 def contact_phase(r: dict) -> str | None:
     """When ground truth saw the contact: "take-off" (before offboard, as the follower's 1 Hz mode
-    log sees it), "flight" (offboard, before the goal), "after goal, offboard" (the brake or the
-    dry run's retreat), "after goal, landing" (PX4's Hold or Land); None without one."""
+    log sees it), "flight" (offboard, before the goal), "after goal, offboard" (the brake, the dry
+    run's retreat or its landing in offboard), "after goal, landing" (PX4's Hold or Land); None
+    without one."""
     truth = r.get("ground_truth") or {}
     contact = truth.get("contact")
     if not contact:
@@ -98,14 +99,17 @@ def main(path: str) -> int:
         all_trips.update(t["cause"] for r in rs for t in r.get("watchdog_trips", []))
     print("watchdog trips by cause:", dict(all_trips) or "none")
     print()
-    print("| level | contacts: take-off | in flight before the goal | after the goal, offboard (brake, retreat) | after the goal, Hold/Land | retreats (ended: count) |")
-    print("|---|---|---|---|---|---|")
+    print("| level | contacts: take-off | in flight before the goal | after the goal, offboard (brake, retreat, landing) | "
+          "after the goal, PX4's Hold/Land | retreats (ended: count) | landings in offboard (ended: count) |")
+    print("|---|---|---|---|---|---|---|")
     for level, rs in sorted(by_level.items()):
         phases = collections.Counter(contact_phase(r) for r in rs)
         retreats = collections.Counter(((r.get("brake") or {}).get("retreat") or {}).get("ended") for r in rs)
+        descents = collections.Counter(((r.get("brake") or {}).get("descent") or {}).get("ended") for r in rs)
         retreats.pop(None, None)
+        descents.pop(None, None)
         print(f"| {level} | {phases['take-off']} | {phases['flight']} | {phases['after goal, offboard']} | "
-              f"{phases['after goal, landing'] + phases['after goal']} | {dict(retreats) or '-'} |")
+              f"{phases['after goal, landing'] + phases['after goal']} | {dict(retreats) or '-'} | {dict(descents) or '-'} |")
     return 0
 
 

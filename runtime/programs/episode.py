@@ -4,7 +4,8 @@ itself: ``cmnav fly`` with ``mission.allow_arm_takeoff = true`` and the SITL fli
 
 connect → wait for health (armable, local position, home) → first camera frame → arm → take off
 (and wait for Hold at the takeoff height) → [the program's last check before offboard] → hover
-setpoint, offboard → fly the policy → pilot check → land, wait for disarm.  With several episodes
+setpoint, offboard → fly the policy (after the last goal: back along the path flown, then down in
+offboard, ``FlightLoop.fly``'s ``landing_next``) → pilot check → land, wait for disarm.  With several episodes
 (``cmnav fly``'s mission waypoints) the part from the program's check to the pilot check repeats
 for each, from Hold, while each reaches its goal.
 
@@ -78,6 +79,11 @@ class EpisodeScript:
         self.flight = flight
         self.status = status
         self.alive_while = alive_while
+        loop.on_landing = self._landing_in_offboard
+
+    def _landing_in_offboard(self) -> None:
+        self.flight.enter(Phase.LANDING)
+        self.status("dry run: landing in offboard")
 
     async def start(self, first_frame_timeout_s: float, camera_name: str, no_frame_fix: Callable[[], str]) -> VehicleState:
         """Connect, start the flight loop (camera), wait for health and the first frame;
@@ -147,7 +153,7 @@ class EpisodeScript:
             self.flight.enter(Phase.EPISODE)
             result = await fly(state)
             self.flight.enter(Phase.HOLDING)
-            if self.loop.watchdog.pilot_took_over or self.loop.handed_over_in_retreat:  # in flight, or in the retreat after it
+            if self.loop.watchdog.pilot_took_over or self.loop.handed_over_after_goal:  # in flight, or in the retreat or landing after it
                 log.warning("the pilot took over: not landing, the vehicle is theirs")
                 return result
             if result.abort_reason == TripCause.VEHICLE_FAULT.value and not await self._still_armed():
@@ -159,10 +165,12 @@ class EpisodeScript:
         return result
 
     async def land(self) -> None:
-        """Land where the vehicle is and wait for the disarm."""
-        self.status("dry run: landing")
+        """Land where the vehicle is and wait for the disarm (no Land command when the landing in
+        offboard, ``FlightLoop.descend``, has already ended in the autopilot's disarm)."""
         self.flight.enter(Phase.LANDING)
-        await self.vehicle.land()
+        if self.vehicle.state().armed:
+            self.status("dry run: landing")
+            await self.vehicle.land()
         await self.alive_while(self.vehicle.wait_disarmed())
         self.flight.enter(Phase.DONE)
         log.info("landed and disarmed")

@@ -292,9 +292,8 @@ class FieldProgram:
         try:
             await script.dry_run(
                 self.config.mission.takeoff_alt_m,
-                # the last episode lands after it: a goal reached is followed by the retreat
-                lambda state: self._episode(loop, model, episode, state, recorder,
-                                            self.config.mission.land_retreat_m if episode == episodes else 0.0),
+                # the last episode lands after it: a goal reached is followed by the retreat and the landing
+                lambda state: self._episode(loop, model, episode, state, recorder, landing_next=episode == episodes),
                 before_offboard=before_offboard,
                 on_refused=refused,
                 episodes=episodes,
@@ -333,10 +332,10 @@ class FieldProgram:
 
     async def _episode(
         self, loop: FlightLoop, model: PolicyModel, episode: int, state: VehicleState, recorder: Recorder | None,
-        retreat_m: float = 0.0,
+        landing_next: bool = False,
     ) -> EpisodeResult:  # fmt: skip
         """One offboard episode toward the goal (relative to home), recorded to its own log;
-        ``retreat_m``: ``FlightLoop.fly``'s retreat after a goal reached (a dry run's landing next)."""
+        ``landing_next``: a dry run's last episode (``FlightLoop.fly``: the retreat and landing after a goal reached)."""
         assert state.home_enu_m is not None
         goal_enu_m = state.home_enu_m + self._goal_rel_home_enu_m(episode)
         loop.recorder = recorder
@@ -344,7 +343,7 @@ class FieldProgram:
         item = "" if self.waypoints is None else f" (mission item {self.waypoints[episode - 1].seq})"
         self._status(f"episode {episode}: flying to the goal {np.round(goal_enu_m - state.home_enu_m, 2).tolist()} m from home{item}")
         try:
-            result = await loop.fly(goal_enu_m, self.config.mission.episode_timeout_s, retreat_m)
+            result = await loop.fly(goal_enu_m, self.config.mission.episode_timeout_s, landing_next)
             self.flight.enter(Phase.HOLDING)
         except asyncio.CancelledError:
             # A stop signal: the safe stop now, while this episode's log is still open to record it.

@@ -191,13 +191,12 @@ async def _fly_with_faults(
     summary: dict,
 ) -> EpisodeResult:  # fmt: skip
     """``loop.fly`` with the runtime's injected faults armed (none: just ``loop.fly``); a goal reached
-    is followed by the dry run's retreat (``mission.land_retreat_m``) before the landing."""
-    retreat_m = loop.config.mission.land_retreat_m
+    is followed by the dry run's retreat and landing (``FlightLoop.fly``'s ``landing_next``)."""
     settle_heap()  # here, not only in loop.fly: the faults' clock and the episode's start together
     t0_ns = time.monotonic_ns()
     summary["t_episode_start_s"] = t0_ns / 1e9
     if not injections:
-        return await loop.fly(goal_enu_m, timeout_s, retreat_m)
+        return await loop.fly(goal_enu_m, timeout_s, landing_next=True)
     injected: dict[FaultKind, float] = {}
     if policy is not None:
         policy.start(t0_ns)
@@ -210,7 +209,7 @@ async def _fly_with_faults(
         fence_task = asyncio.create_task(shrink_geofence_at(loop.watchdog, fence.at_s, t0_ns, loop.vehicle.state))
         fence_task.add_done_callback(log_task_failure)
     try:
-        return await loop.fly(goal_enu_m, timeout_s, retreat_m)
+        return await loop.fly(goal_enu_m, timeout_s, landing_next=True)
     finally:
         if fence_task is not None:
             if fence_task.done() and not fence_task.cancelled() and fence_task.exception() is None:

@@ -9,7 +9,8 @@ flight mode telemetry reports (offboard is left safely whoever entered it).
   setpoint, then Hold at once (``FlightLoop.safe_stop``);
 - taking off: Hold where the vehicle is (the climb stops);
 - arming: disarm if armed and still on the ground;
-- landing: nothing — the autopilot's landing is the safe state and goes on;
+- landing: the autopilot's landing is the safe state and goes on; where the runtime was landing in
+  offboard (``FlightLoop.descend``), the autopilot's Land is commanded to finish it;
 - connecting, waiting for health / the camera / the pilot, after Hold: nothing to command;
 - the pilot took over: nothing (the vehicle is theirs).
 
@@ -92,6 +93,8 @@ async def command_safe_state(phase: Phase, loop: FlightLoop | None, vehicle: Veh
             await vehicle.hold()
             return Action.HOLD
         if phase == Phase.LANDING:
+            if loop.landing_in_offboard and state.armed:
+                await vehicle.land()  # the runtime's own landing in offboard: the autopilot's Land finishes it
             return Action.LANDING_CONTINUES
         if phase == Phase.ARMING and state.armed and not state.in_air:
             await vehicle.disarm()
@@ -138,5 +141,5 @@ _DOING = {
     Phase.EPISODE: "hover, then Hold",
     Phase.TAKING_OFF: "Hold where the vehicle is",
     Phase.ARMING: "disarm if still on the ground",
-    Phase.LANDING: "the autopilot goes on landing",
+    Phase.LANDING: "the autopilot goes on landing (its Land, where the runtime landed in offboard)",
 }

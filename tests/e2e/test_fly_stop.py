@@ -1,6 +1,7 @@
 """A stop signal to `cmnav fly` (what `systemctl stop` sends) in each phase, against the SITL
 vehicle, real processes over loopback: the runtime commands the safe state itself (in offboard a
-hover setpoint, then Hold; taking off, Hold; landing goes on) and records the stop, and the
+hover setpoint, then Hold; taking off, Hold; landing goes on, under the autopilot's Land) and
+records the stop, and the
 vehicle's offboard-loss failsafe never fires.  The SITL vehicle's failsafe is PX4's default
 (COM_OBL_RC_ACT = 0: Position mode, which lands a vehicle without RC), so a runtime that left the
 vehicle to it would show a "Failsafe" event and a landing here.
@@ -86,8 +87,9 @@ def test_stop_signal_in_a_dry_run_ends_in_the_runtimes_safe_state(goal_seeker, t
         elif phase == "episode":
             _wait(lambda: any(m.startswith("STATUS=episode 1: flying") for m in notify.messages), "the episode", proc, tmp_path)
             time.sleep(1.0)  # flying the policy
-        else:
-            _wait(lambda: sitl.modes()[-1:] == ["LAND"], "landing", proc, tmp_path)
+        else:  # the dry run's own landing in offboard (mission.land_in_offboard): the autopilot's Land finishes it
+            _wait(lambda: any(m == "STATUS=dry run: landing in offboard" for m in notify.messages), "landing", proc, tmp_path)
+            time.sleep(0.3)
         proc.send_signal(signal.SIGTERM)
         if phase == "episode":
             time.sleep(0.05)

@@ -366,6 +366,17 @@ def _vehicle_offboard_entry(status_path: Path) -> float | None:
     return next((t for t, mode in _vehicle_mode_log(status_path) if mode == "OFFBOARD"), None)
 
 
+def flight_end_t_s(trace: dict, t_offboard: float | None) -> float | None:
+    """When the flight that began at ``t_offboard`` ended in ground truth: the first mode other than
+    offboard after it, or the disarm (a dry run lands in offboard: ``mission.land_in_offboard``);
+    None if neither came (or it never entered offboard)."""
+    if t_offboard is None:
+        return None
+    ends = [t for t, mode in trace["mode_log"] if t > t_offboard and mode != "OFFBOARD"][:1]
+    ends += [t for t, armed in trace.get("armed_log", []) if t > t_offboard and not armed][:1]
+    return min(ends, default=None)
+
+
 def merge_summary(
     request: SitlRequest, episode: dict, flight: dict, trace: dict, run_dir: Path, wall_s: float,
     signalled: RuntimeSignal | None = None,
@@ -380,7 +391,7 @@ def merge_summary(
     t_s = np.asarray(trace["t_s"], dtype=np.float64)
     offboard = [t for t, mode in trace["mode_log"] if mode == "OFFBOARD"]
     t_offboard = offboard[0] if offboard else None
-    t_left = next((t for t, mode in trace["mode_log"] if t_offboard is not None and t > t_offboard and mode != "OFFBOARD"), None)
+    t_left = flight_end_t_s(trace, t_offboard)
     in_flight = np.ones(len(t_s), bool) if t_offboard is None else (t_s >= t_offboard) & (t_s <= (t_left if t_left is not None else np.inf))
     flown = positions[in_flight]
     collision = trace.get("collision")
@@ -393,7 +404,8 @@ def merge_summary(
         # The runtime believed it arrived but ground truth disagrees: report what happened.
         log.error("runtime reported success but the vehicle came no nearer than %.2f m to the goal", closest_m)
         outcome = "aborted"
-    frame_fracs = [f for t, f in zip(trace["frame_t_s"], trace["invalid_depth_frac"]) if t_offboard is None or t >= t_offboard]
+    frame_fracs = [f for t, f in zip(trace["frame_t_s"], trace["invalid_depth_frac"])
+                   if (t_offboard is None or t >= t_offboard) and (t_left is None or t <= t_left)]  # fmt: skip
     plot_path = plot_top_view(
         run_dir / "trajectory.png", episode["room_size_m"], episode["boxes"], episode["start_enu_m"], goal,
         flown if len(flown) >= 2 else positions,

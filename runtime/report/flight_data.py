@@ -78,11 +78,11 @@ class FlightData:
     status_texts: list[dict]
     first_step_t_s: float | None
     last_step_t_s: float | None
-    offboard_end_t_s: float | None  # telemetry's first mode other than offboard after the first step
+    offboard_end_t_s: float | None  # telemetry's first state after the first step out of offboard, or disarmed
 
     def in_flight(self, t_s: np.ndarray) -> np.ndarray:
         """Mask of times in the flight: from the first policy step until telemetry shows the
-        vehicle out of offboard (else the last step); all False without steps."""
+        vehicle out of offboard or disarmed (else the last step); all False without steps."""
         if self.first_step_t_s is None or self.last_step_t_s is None:
             return np.zeros(len(t_s), bool)
         end = self.offboard_end_t_s if self.offboard_end_t_s is not None else self.last_step_t_s
@@ -158,7 +158,9 @@ class _Collector:
         self.first_frame: tuple[int, np.ndarray, np.ndarray, float] | None = None
         self.snapshots: list[tuple[str, int, np.ndarray, np.ndarray, float]] = []
         self.start_taken = False
-        self.offboard_end: int | None = None  # the first state after the first step that is not in offboard
+        # The first state after the first step that is not in offboard, or disarmed (a dry run that
+        # landed in offboard stays in it on the ground).
+        self.offboard_end: int | None = None
         self.end_frame: tuple[int, np.ndarray, np.ndarray, float] | None = None
         self.worst: tuple[int, np.ndarray, np.ndarray, float] | None = None
         self.pending_worst: tuple[int, np.ndarray, np.ndarray, float] | None = None
@@ -194,7 +196,7 @@ def read_flight(path: str | Path) -> FlightData:
             yaw = msg.get("yaw_enu_rad")
             rate = _floats(msg.get("angvel_body_flu_rad_s"), 3)[2]
             c.states.append((log_time, _floats(msg.get("pos_enu_m"), 3), vel, math.nan if yaw is None else float(yaw), rate))
-            if c.steps and c.offboard_end is None and msg.get("flight_mode") != "OFFBOARD":
+            if c.steps and c.offboard_end is None and (msg.get("flight_mode") != "OFFBOARD" or msg.get("armed") is False):
                 c.offboard_end = log_time
         elif topic == TOPIC_OBSERVATION:
             goal = _floats(msg.get("goal_enu_m"), 3)
@@ -273,5 +275,8 @@ def _assemble(reader: FlightLogReader, c: _Collector, first_time: int | None) ->
         status_texts=[{**m, "log_t_s": round(float(rel([t])[0]), 3)} for t, m in c.status],
         first_step_t_s=float(step_t[0]) if len(step_t) else None,
         last_step_t_s=float(step_t[-1]) if len(step_t) else None,
-        offboard_end_t_s=None if c.offboard_end is None else float(rel([c.offboard_end])[0]),
+        # A log that ends in offboard (a dry run that landed in it closes the log at the disarm, maybe
+        # before telemetry shows it): the flight lasted to its last state.
+        offboard_end_t_s=float(rel([c.offboard_end if c.offboard_end is not None else c.states[-1][0]])[0])
+        if c.steps and c.states else None,
     )

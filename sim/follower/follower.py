@@ -225,6 +225,7 @@ class WorldFollower:
         changed = self._link.poll(time.monotonic())
         if "HEARTBEAT" in changed:
             self._note_mode()
+            self._trace.note_armed(time.monotonic(), self._link.view.armed)
         if "pose" in changed and self._placement is not None:
             self._follow_pose()
         events = self._link.view.events

@@ -59,7 +59,8 @@ def episode_record(
 @dataclass
 class Trace:
     """Ground truth collected while flying: position and velocity every ``period_s``, the
-    collision, events."""
+    collision, events, and when the autopilot armed and disarmed (``armed_log``: a dry run that
+    lands in offboard ends its flight with the disarm, in offboard)."""
 
     period_s: float = 0.05
     t_s: list[float] = field(default_factory=list)
@@ -68,6 +69,12 @@ class Trace:
     yaw_enu_rad: list[float] = field(default_factory=list)
     collision: dict | None = None
     events: list[tuple[float, str]] = field(default_factory=list)
+    armed_log: list[tuple[float, bool]] = field(default_factory=list)
+
+    def note_armed(self, t_s: float, armed: bool) -> None:
+        """The autopilot's armed state at ``t_s``, kept where it changed."""
+        if not self.armed_log or self.armed_log[-1][1] != armed:
+            self.armed_log.append((t_s, bool(armed)))
 
     def sample(self, t_s: float, pos_enu_m: np.ndarray, vel_enu_m_s: np.ndarray, yaw_enu_rad: float = 0.0) -> None:
         """Record position (world ENU, m), velocity (m/s) and heading (rad, counter-clockwise
@@ -97,6 +104,7 @@ class Trace:
             "collision": self.collision,
             "mode_log": [[t, mode] for t, mode in mode_log],
             "events": [[t, text] for t, text in self.events],
+            "armed_log": [[t, armed] for t, armed in self.armed_log],
             "frame_t_s": [f.t_capture_ns * 1e-9 for f in served],
             "invalid_depth_frac": [f.invalid_depth_frac for f in served],
             "frames_served": len(served),

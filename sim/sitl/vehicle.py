@@ -265,6 +265,7 @@ class SitlVehicle:
             self._pose_autopilot.publish(self._known, t_s, events)
         self._trace.record_events(events)
         self._trace.sample(t_s, self._kin.pos_enu_m, self._kin.vel_enu_m_s, self._kin.yaw_enu_rad)
+        self._trace.note_armed(t_s, self._commander.armed)
         if len(self._commander.mode_log) != self._modes_reported:
             self._write_status()
 

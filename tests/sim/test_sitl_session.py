@@ -148,3 +148,15 @@ def test_a_nan_model_is_refused_before_any_process_starts(tmp_path, capsys):
     assert "model refused, nothing started" in err and "outputs NaN/Inf (action)" in err
     assert len(err.strip().splitlines()) == 1
     assert not out.exists()  # no run directory: neither the vehicle nor the runtime was started
+
+
+def test_the_flight_ends_at_the_first_mode_out_of_offboard_or_the_disarm():
+    from sim.sitl_session import flight_end_t_s
+
+    trace = {"mode_log": [[0.0, "HOLD"], [5.0, "OFFBOARD"], [15.0, "HOLD"], [17.0, "LAND"]],
+             "armed_log": [[1.0, True], [20.0, False]]}  # fmt: skip
+    assert flight_end_t_s(trace, 5.0) == 15.0
+    landed_in_offboard = {"mode_log": [[0.0, "HOLD"], [5.0, "OFFBOARD"]], "armed_log": [[1.0, True], [18.0, False]]}
+    assert flight_end_t_s(landed_in_offboard, 5.0) == 18.0
+    assert flight_end_t_s({"mode_log": [[5.0, "OFFBOARD"]]}, 5.0) is None  # a trace from before armed_log: to its end
+    assert flight_end_t_s(trace, None) is None

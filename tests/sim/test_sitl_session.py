@@ -10,7 +10,7 @@ import pytest
 
 from runtime.faults.catalogue import FaultKind, FaultSite, Injection, parse_injection
 from sim.fault_report import RuntimeSignal
-from sim.sitl_session import SitlError, SitlRequest, merge_summary, run_sitl, run_sitl_cli
+from sim.sitl_session import SitlError, SitlRequest, flight_end_t_s, merge_summary, run_sitl, run_sitl_cli
 
 EPISODE = {
     "room_size_m": [11.0, 6.0, 5.0],
@@ -151,8 +151,6 @@ def test_a_nan_model_is_refused_before_any_process_starts(tmp_path, capsys):
 
 
 def test_the_flight_ends_at_the_first_mode_out_of_offboard_or_the_disarm():
-    from sim.sitl_session import flight_end_t_s
-
     trace = {"mode_log": [[0.0, "HOLD"], [5.0, "OFFBOARD"], [15.0, "HOLD"], [17.0, "LAND"]],
              "armed_log": [[1.0, True], [20.0, False]]}  # fmt: skip
     assert flight_end_t_s(trace, 5.0) == 15.0

@@ -295,13 +295,7 @@ class FlightLoop:
         while len(path) > 1:
             state, now_ns = self.vehicle.state(), time.monotonic_ns()
             elapsed_s = (now_ns - t0_ns) / _NS_PER_S
-            if self.gate.released:
-                return None
-            if state.flight_mode != MODE_OFFBOARD and state.t_mode_ns > t0_ns:
-                # A pilot (or the autopilot's failsafe) took the vehicle: nothing more is sent, no Hold either.
-                log.warning("flight mode %s during the retreat: the vehicle is no longer the runtime's", state.flight_mode)
-                self.gate.release()
-                self.handed_over_after_goal = True
+            if self._handed_over(state, t0_ns, "retreat"):
                 return None
             if now_ns - state.t_telemetry_ns > stale_ns:
                 ended = "stale_telemetry"
@@ -325,8 +319,8 @@ class FlightLoop:
         return record
 
     async def descend(self) -> dict | None:
-        """Land under the runtime's control (``runtime.watchdog.LAND_DESCENT_M_S``): down at that
-        speed, horizontally the brake's law on the measured (corrected) velocity, at the control
+        """Land under the runtime's control (``runtime.watchdog.descent_setpoint``): down at
+        ``LAND_DESCENT_M_S``, horizontally holding the position estimate where it began, at the control
         rate, until the autopilot disarms on its land detector ("disarmed"), or ``LAND_DISARM_WAIT_S``
         after it reported the touch-down without disarming ("landed": the dry run's Land disarms
         it); "timeout" when no touch-down is reported within :func:`runtime.watchdog.descent_time_limit_s`,
@@ -344,12 +338,7 @@ class FlightLoop:
         log.info("landing in offboard from %.2f m above home at %.2f m/s", start.height_above_home_m, LAND_DESCENT_M_S)
         while True:
             state, now_ns = self.vehicle.state(), time.monotonic_ns()
-            if self.gate.released:
-                return None
-            if state.flight_mode != MODE_OFFBOARD and state.t_mode_ns > t0_ns:
-                log.warning("flight mode %s during the landing: the vehicle is no longer the runtime's", state.flight_mode)
-                self.gate.release()
-                self.handed_over_after_goal = True
+            if self._handed_over(state, t0_ns, "landing"):
                 return None
             if not state.armed:
                 ended = "disarmed"
@@ -366,7 +355,7 @@ class FlightLoop:
             if now_ns - state.t_telemetry_ns > stale_ns:
                 ended = "stale_telemetry"
                 break
-            cmd = descent_setpoint(state, now_ns, self.config.watchdog)
+            cmd = descent_setpoint(state, start.pos_enu_m, now_ns, self.config.watchdog)
             sent = await self.gate.send_own(cmd)
             if self.recorder is not None:
                 self.recorder.log_command(time.monotonic_ns(), None, mavsdk_to_velocity_flu(cmd), cmd, "landing", sent)
@@ -376,6 +365,19 @@ class FlightLoop:
                   "duration_s": round((time.monotonic_ns() - t0_ns) / _NS_PER_S, 3)}  # fmt: skip
         log.info("landing in offboard: %s", record)
         return record
+
+    def _handed_over(self, state: VehicleState, t0_ns: int, what: str) -> bool:
+        """Whether the vehicle stopped being the runtime's during ``what`` (its retreat or landing,
+        begun at ``t0_ns``): the gate released, or a mode other than offboard reported since.  A
+        pilot (or the autopilot's failsafe) took it: nothing more is sent, no Hold either."""
+        if self.gate.released:
+            return True
+        if state.flight_mode != MODE_OFFBOARD and state.t_mode_ns > t0_ns:
+            log.warning("flight mode %s during the %s: the vehicle is no longer the runtime's", state.flight_mode, what)
+            self.gate.release()
+            self.handed_over_after_goal = True
+            return True
+        return False
 
     def set_goal(self, goal_enu_m: np.ndarray) -> None:
         """New goal (local ENU, m): the GRU state resets."""

@@ -52,6 +52,7 @@ from .contract.frames import world_enu_to_vehicle
 from .log.recorder import Recorder
 from .model import PolicyModel
 from .policy_step import PolicyMemory, StepResult, compute_step
+from .service.shutdown import wait_within
 from .slots import LatestSlot
 from .state import MODE_OFFBOARD, VehicleError, VehicleState
 from .timing import StageTimes
@@ -474,7 +475,7 @@ class FlightLoop:
                 log.error("Hold after the trip failed: %s; the vehicle hovers in offboard", err)
             return
         try:
-            await asyncio.wait_for(asyncio.shield(watchdog), limit_s)
+            await wait_within(asyncio.shield(watchdog), limit_s)
         except asyncio.TimeoutError:
             log.error("the watchdog could not command Hold within %.1f s; the vehicle hovers in offboard", limit_s)
 
@@ -542,7 +543,8 @@ class FlightLoop:
 
     async def _policy_task(self, episode: "_Episode") -> None:
         seq = self.frames.latest().seq if self.frames.latest() else 0
-        while self.gate.policy_open:
+        # The episode's end stops it too, not only its cancellation: a step may be under way.
+        while self.gate.policy_open and not episode.ended.done():
             try:
                 stamped = await self.frames.wait_newer(seq, timeout_s=CONTROL_PERIOD_S)
             except asyncio.TimeoutError:
@@ -570,9 +572,9 @@ class FlightLoop:
         limit_s = self.config.watchdog.step_trip_ms / 1000.0 - (time.monotonic_ns() - t_start) / _NS_PER_S
         loop = asyncio.get_running_loop()
         try:
-            result = await asyncio.wait_for(
+            result = await wait_within(
                 loop.run_in_executor(self._executor, compute_step, self.model, frame, inputs),
-                timeout=max(limit_s, 0.0),
+                max(limit_s, 0.0),
             )
         except ImageContractError as err:
             episode.bad_frames += 1

@@ -12,6 +12,8 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Generic, TypeVar
 
+from .service.shutdown import wait_within
+
 T = TypeVar("T")
 
 
@@ -56,7 +58,7 @@ class LatestSlot(Generic[T]):
 
         Raises ``asyncio.TimeoutError`` when none comes within ``timeout_s`` seconds.
         """
-        await asyncio.wait_for(self._wait_newer(after_seq), timeout_s)
+        await wait_within(self._wait_newer(after_seq), timeout_s)
         assert self._latest is not None
         return self._latest
 

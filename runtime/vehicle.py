@@ -32,7 +32,7 @@ from .config import VehicleConfig
 from .programs.mission_goals import RawMissionItem
 from .contract import HOVER, VelocityBodyYawspeed
 from .contract.frames import ned_to_enu, quat_ned_frd_to_enu_flu
-from .service.shutdown import in_daemon_thread
+from .service.shutdown import in_daemon_thread, wait_within
 from .tracking import VelocityBias, setpoint_with_bias
 from .state import (
     MODE_HOLD,
@@ -79,7 +79,7 @@ class Vehicle:
         url = self.config.url
         self._mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER))
         try:
-            await asyncio.wait_for(self._mavsdk.add_any_connection(url), self.config.command_timeout_s)
+            await wait_within(self._mavsdk.add_any_connection(url), self.config.command_timeout_s)
         except MavsdkConnectionError as err:
             raise VehicleError(f"MAVSDK could not open {url!r} ({err}): is the port free and the URL right?") from err
         except asyncio.TimeoutError as err:
@@ -187,7 +187,7 @@ class Vehicle:
                 await self._updated.wait()
 
         try:
-            return await asyncio.wait_for(wait(), timeout_s)
+            return await wait_within(wait(), timeout_s)
         except asyncio.TimeoutError as err:
             state = self.state()
             raise VehicleTimeoutError(
@@ -305,7 +305,7 @@ class Vehicle:
 
     async def _command(self, what: str, awaitable: Awaitable[T]) -> T:
         try:
-            return await asyncio.wait_for(awaitable, self.config.command_timeout_s)
+            return await wait_within(awaitable, self.config.command_timeout_s)
         except asyncio.TimeoutError as err:
             raise VehicleTimeoutError(
                 f"{what}: no answer from the autopilot within {self.config.command_timeout_s} s: is the link up?"

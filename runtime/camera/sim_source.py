@@ -15,6 +15,7 @@ import time
 from dataclasses import dataclass
 from typing import AsyncIterator
 
+from ..service.shutdown import wait_within
 from ..slots import LatestSlot
 from .frame import Frame
 from .sim_wire import HEADER, FrameDecodeError, decode_header, decode_payload, payload_size
@@ -78,7 +79,7 @@ class SimCameraSource:
     async def _read_forever(self) -> None:
         while True:
             try:
-                reader, writer = await asyncio.wait_for(
+                reader, writer = await wait_within(
                     asyncio.open_connection(LOOPBACK, self.port), self.connect_timeout_s
                 )
             except (OSError, asyncio.TimeoutError) as err:
@@ -112,8 +113,8 @@ class SimCameraSource:
 
     async def _read_frames(self, reader: asyncio.StreamReader) -> None:
         while True:
-            header = await asyncio.wait_for(reader.readexactly(HEADER.size), self.read_timeout_s)
+            header = await wait_within(reader.readexactly(HEADER.size), self.read_timeout_s)
             seq, t_ns, width, height, meta_len = decode_header(header)
-            payload = await asyncio.wait_for(reader.readexactly(payload_size(width, height, meta_len)), self.read_timeout_s)
+            payload = await wait_within(reader.readexactly(payload_size(width, height, meta_len)), self.read_timeout_s)
             self.latest.put(decode_payload(seq, t_ns, width, height, payload, t_received_ns=time.monotonic_ns()))
             self.stats.frames += 1

@@ -1,5 +1,11 @@
-"""Bounded teardown: once the vehicle is down, the process must exit even if a driver's teardown
-(MAVSDK's C destroy, a camera pipeline) hangs.
+"""Bounded waits and teardown: a stop must reach every task at once, and once the vehicle is down
+the process must exit even if a driver's teardown (MAVSDK's C destroy, a camera pipeline) hangs.
+
+:func:`wait_within` is the runtime's ``asyncio.wait_for``: on Python 3.10 and 3.11 (the Jetson's
+and ours) ``wait_for`` loses a cancellation that arrives while the awaited thing has just finished
+(CPython gh-86296, fixed in 3.12): the task goes on as if never stopped.  CI saw it: SIGTERM
+reached the runtime as a camera frame came in, the policy task's wait for the frame swallowed its
+cancellation and flew the policy on for 9.8 s until the goal, and the stop began only then.
 
 Each step gets ``timeout_s``.  A step that overruns is abandoned with an error naming it, and the
 stacks of every thread go to stderr, so the log shows where it hung.  A step stuck in a C call on
@@ -23,6 +29,22 @@ STUCK_LOOP_GRACE_S = 2.0
 LEFTOVER_TIMEOUT_S = 2.0  # after the program's end, for the tasks still pending (see run_bounded)
 
 T = TypeVar("T")
+
+
+async def wait_within(awaitable: Awaitable[T], timeout_s: float | None) -> T:
+    """``awaitable``'s result, ``asyncio.TimeoutError`` after ``timeout_s`` (None: no limit).  A
+    cancellation of the caller always propagates; the awaitable is then cancelled and not waited
+    for (it may be slow to honour it; ``run_bounded`` collects what is left at exit)."""
+    task = asyncio.ensure_future(awaitable)
+    try:
+        done, _ = await asyncio.wait({task}, timeout=timeout_s)
+    except asyncio.CancelledError:
+        task.cancel()
+        raise
+    if not done:
+        task.cancel()
+        raise asyncio.TimeoutError
+    return task.result()
 
 
 async def close_step(name: str, close: Callable[[], Awaitable[None]], timeout_s: float = CLOSE_STEP_TIMEOUT_S) -> bool:

@@ -12,7 +12,7 @@ import time
 import pytest
 
 from runtime.config import VehicleConfig
-from runtime.service.shutdown import close_step, in_daemon_thread
+from runtime.service.shutdown import close_step, in_daemon_thread, wait_within
 from runtime.vehicle import Vehicle
 
 
@@ -84,7 +84,7 @@ def test_process_exits_despite_a_teardown_that_never_returns():
     script = textwrap.dedent(
         """
         import asyncio, threading
-        from runtime.service.shutdown import close_step, in_daemon_thread
+        from runtime.service.shutdown import close_step, in_daemon_thread, wait_within
         never = threading.Event()
         async def main():
             done = await close_step("MAVSDK", lambda: in_daemon_thread("mavsdk-destroy", never.wait), 0.5)
@@ -132,3 +132,57 @@ def test_a_step_slow_to_honour_its_cancellation_is_left_behind_and_the_process_e
     assert "closing the camera took over 0.3 s: abandoned" in proc.stderr
     assert "did not end 0.5 s after its cancellation: left behind at exit" in proc.stderr
     assert time.monotonic() - t0 < 30.0
+
+
+async def _cancel_as_it_finishes(wait) -> str:
+    """Cancel a task just as the thing it waits for finishes (a frame arriving as SIGTERM does):
+    the inner future completes in one loop iteration and the cancel comes before its waiter runs."""
+    event = asyncio.Event()
+
+    async def inner() -> str:
+        await event.wait()
+        return "frame"
+
+    async def waiter() -> str:
+        return await wait(inner(), 5.0)
+
+    task = asyncio.create_task(waiter())
+    await asyncio.sleep(0)  # the waiter waits
+    event.set()
+    await asyncio.sleep(0)  # inner finishes; the waiter's wake-up is queued behind us
+    task.cancel()
+    try:
+        return await task
+    except asyncio.CancelledError:
+        return "cancelled"
+
+
+def test_wait_within_never_loses_a_cancellation_that_wait_for_loses():
+    if sys.version_info < (3, 12):  # the race this guards against, as the interpreter has it
+        assert asyncio.run(_cancel_as_it_finishes(asyncio.wait_for)) == "frame"
+    assert asyncio.run(_cancel_as_it_finishes(wait_within)) == "cancelled"
+
+
+def test_wait_within_returns_raises_and_times_out():
+    async def main() -> None:
+        async def value() -> int:
+            await asyncio.sleep(0.01)
+            return 7
+
+        async def fail() -> None:
+            raise OSError("link down")
+
+        never = asyncio.Event()
+        assert await wait_within(value(), 1.0) == 7
+        assert await wait_within(value(), None) == 7
+        with pytest.raises(OSError, match="link down"):
+            await wait_within(fail(), 1.0)
+        t0 = time.monotonic()
+        with pytest.raises(asyncio.TimeoutError):
+            await wait_within(never.wait(), 0.05)
+        assert time.monotonic() - t0 < 1.0
+        await asyncio.sleep(0)
+        pending = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+        assert pending == [], pending  # what timed out was cancelled, not left waiting
+
+    asyncio.run(main())

@@ -42,3 +42,27 @@ def test_wait_newer_wakes_on_put_and_times_out():
             await slot.wait_newer(2, timeout_s=0.01)
 
     asyncio.run(main())
+
+
+def test_a_reader_cancelled_as_a_value_arrives_is_cancelled():
+    """The policy task waits for frames this way: a stop that comes with a frame must stop it (on
+    Python 3.11 ``asyncio.wait_for`` lost that cancellation and the task flew on)."""
+
+    async def main():
+        slot: LatestSlot[int] = LatestSlot("frames")
+        cancelled = 0
+        for spins in range(6):  # the cancel at each point of the value's hand-over, until the reader has it
+            reader = asyncio.create_task(slot.wait_newer(slot.latest().seq if slot.latest() else 0, timeout_s=5.0))
+            await asyncio.sleep(0)
+            slot.put(spins)
+            for _ in range(spins):
+                await asyncio.sleep(0)
+            if reader.cancel():  # not yet finished: the cancellation must stop it
+                cancelled += 1
+                with pytest.raises(asyncio.CancelledError):
+                    await reader
+            else:
+                assert reader.result().value == spins
+        assert 0 < cancelled < 6
+
+    asyncio.run(main())

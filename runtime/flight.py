@@ -60,6 +60,9 @@ from .watchdog import (
     LAND_DESCENT_M_S,
     LAND_DISARM_WAIT_S,
     RETREAT_SPEED_M_S,
+    TAKEOFF_CLIMB_MAX_M_S,
+    TAKEOFF_CLIMB_REACHED_M,
+    TAKEOFF_CLIMB_TIME_MARGIN_S,
     RetreatTracker,
     TripCause,
     WatchInputs,
@@ -67,8 +70,9 @@ from .watchdog import (
     brake_ended,
     brake_record,
     brake_setpoint,
-    descent_setpoint,
+    climb_speed_m_s,
     descent_time_limit_s,
+    hold_setpoint,
     retreat_path,
 )
 
@@ -319,8 +323,49 @@ class FlightLoop:
         log.info("retreat: %s", record)
         return record
 
+    async def climb(self, height_above_home_m: float) -> dict | None:
+        """After the autopilot's take-off, in offboard and before the first episode: up to
+        ``height_above_home_m`` (PX4 ends its take-off up to 0.8 m short and climbs the rest slowly
+        in Hold, drifting: ``runtime.watchdog.TAKEOFF_HOLD_SHORT_M``), at :func:`runtime.watchdog.climb_speed_m_s`,
+        horizontally holding the position estimate where it began (``runtime.watchdog.hold_setpoint``,
+        the landing's law).  Ends "reached" within ``TAKEOFF_CLIMB_REACHED_M``, "timeout" after
+        (height to go) / ``TAKEOFF_CLIMB_MAX_M_S`` + ``TAKEOFF_CLIMB_TIME_MARGIN_S``, "stale_telemetry";
+        the episode follows in any case (the policy flies from that height).  Returns its record
+        {ended, from_m, to_m (heights above home, by the estimate), drift_m, duration_s}; None once
+        the pilot has the vehicle."""
+        start = self.vehicle.state()
+        t0_ns = time.monotonic_ns()
+        limit_ns = t0_ns + int((max(height_above_home_m - start.height_above_home_m, 0.0) / TAKEOFF_CLIMB_MAX_M_S
+                                + TAKEOFF_CLIMB_TIME_MARGIN_S) * _NS_PER_S)  # fmt: skip
+        stale_ns = int(self.config.watchdog.telemetry_stale_ms * _NS_PER_MS)
+        while True:
+            state, now_ns = self.vehicle.state(), time.monotonic_ns()
+            if self._handed_over(state, t0_ns, "climb after the take-off"):
+                return None
+            to_go_m = height_above_home_m - state.height_above_home_m
+            if to_go_m <= TAKEOFF_CLIMB_REACHED_M:
+                ended = "reached"
+                break
+            if now_ns - state.t_telemetry_ns > stale_ns:
+                ended = "stale_telemetry"
+                break
+            if now_ns >= limit_ns:
+                ended = "timeout"
+                break
+            cmd = hold_setpoint(state, start.pos_enu_m, climb_speed_m_s(to_go_m), now_ns, self.config.watchdog)
+            sent = await self.gate.send_own(cmd)
+            if self.recorder is not None:
+                self.recorder.log_command(time.monotonic_ns(), None, mavsdk_to_velocity_flu(cmd), cmd, "climb", sent)
+            await self._sleep_alive(CONTROL_PERIOD_S)
+        end = self.vehicle.state()
+        record = {"ended": ended, "from_m": round(float(start.height_above_home_m), 3), "to_m": round(float(end.height_above_home_m), 3),
+                  "drift_m": round(float(np.linalg.norm(end.pos_enu_m[:2] - start.pos_enu_m[:2])), 3),
+                  "duration_s": round((time.monotonic_ns() - t0_ns) / _NS_PER_S, 3)}  # fmt: skip
+        (log.info if ended == "reached" else log.warning)("climb after the take-off to %.2f m: %s", height_above_home_m, record)
+        return record
+
     async def descend(self) -> dict | None:
-        """Land under the runtime's control (``runtime.watchdog.descent_setpoint``): down at
+        """Land under the runtime's control (``runtime.watchdog.hold_setpoint``): down at
         ``LAND_DESCENT_M_S``, horizontally holding the position estimate where it began, at the control
         rate, until the autopilot disarms on its land detector ("disarmed"), or ``LAND_DISARM_WAIT_S``
         after it reported the touch-down without disarming ("landed": the dry run's Land disarms
@@ -356,7 +401,7 @@ class FlightLoop:
             if now_ns - state.t_telemetry_ns > stale_ns:
                 ended = "stale_telemetry"
                 break
-            cmd = descent_setpoint(state, start.pos_enu_m, now_ns, self.config.watchdog)
+            cmd = hold_setpoint(state, start.pos_enu_m, -LAND_DESCENT_M_S, now_ns, self.config.watchdog)
             sent = await self.gate.send_own(cmd)
             if self.recorder is not None:
                 self.recorder.log_command(time.monotonic_ns(), None, mavsdk_to_velocity_flu(cmd), cmd, "landing", sent)
@@ -368,9 +413,10 @@ class FlightLoop:
         return record
 
     def _handed_over(self, state: VehicleState, t0_ns: int, what: str) -> bool:
-        """Whether the vehicle stopped being the runtime's during ``what`` (its retreat or landing,
-        begun at ``t0_ns``): the gate released, or a mode other than offboard reported since.  A
-        pilot (or the autopilot's failsafe) took it: nothing more is sent, no Hold either."""
+        """Whether the vehicle stopped being the runtime's during ``what`` (the take-off's climb, the
+        retreat or the landing, begun at ``t0_ns``): the gate released, or a mode other than
+        offboard reported since.  A pilot (or the autopilot's failsafe) took it: nothing more is
+        sent, no Hold either."""
         if self.gate.released:
             return True
         if state.flight_mode != MODE_OFFBOARD and state.t_mode_ns > t0_ns:

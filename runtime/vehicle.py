@@ -222,13 +222,14 @@ class Vehicle:
             await self.set_takeoff_altitude(altitude_m)
         await self._command("takeoff", self._require(self._action).takeoff())
 
-    async def wait_takeoff_done(self, altitude_m: float) -> VehicleState:
-        """Wait until the height above home is within 10 % of ``altitude_m`` and the mode is Hold."""
-        low = altitude_m * (1.0 - TAKEOFF_ALT_TOLERANCE_FRAC)
+    async def wait_takeoff_done(self, altitude_m: float, short_by_m: float | None = None) -> VehicleState:
+        """Wait until the mode is Hold in the air with the height above home at most ``short_by_m``
+        below ``altitude_m`` (default: 10 % of it)."""
+        low = altitude_m - (altitude_m * TAKEOFF_ALT_TOLERANCE_FRAC if short_by_m is None else short_by_m)
         return await self.wait_until(
             lambda s: s.in_air and s.height_above_home_m >= low and s.flight_mode == MODE_HOLD,
             self.config.takeoff_timeout_s,
-            f"takeoff to {altitude_m:.2f} m above home and Hold",
+            f"takeoff to {altitude_m:.2f} m above home (at least {low:.2f} m) and Hold",
         )
 
     async def hold(self) -> None:

@@ -167,24 +167,43 @@ LAND_DISARM_WAIT_S = 4.0  # after the touch-down report, for the autopilot's own
 
 
 LAND_HOLD_GAIN_PER_S = 1.0  # horizontal velocity per metre from the held point (PX4's MPC_XY_P: 0.95)
-LAND_HOLD_MAX_M_S = 0.3  # horizontal command limit while landing
+LAND_HOLD_MAX_M_S = 0.3  # horizontal command limit while landing (and climbing after the take-off)
+
+# The dry run's take-off: PX4 ends its take-off in Hold up to NAV_MC_ALT_RAD (0.8 m) below the
+# height asked (0.65-0.74 m short on PX4 v1.16 SIH) and then climbs the rest in Hold slowly while
+# its position hold wanders (17 s and 1.5 m of true drift seen, into a side wall once).  The
+# runtime takes the vehicle from that Hold and climbs the rest in offboard, holding its position
+# estimate as the landing does (``FlightLoop.climb``).
+TAKEOFF_HOLD_SHORT_M = 1.0  # Hold in the air this far below the height asked ends the autopilot's take-off
+TAKEOFF_CLIMB_MAX_M_S = 0.5
+TAKEOFF_CLIMB_GAIN_PER_S = 1.0  # climb speed per metre still to go
+TAKEOFF_CLIMB_REACHED_M = 0.1  # within this of the height asked: the climb is done
+TAKEOFF_CLIMB_TIME_MARGIN_S = 5.0  # beyond (height to go) / TAKEOFF_CLIMB_MAX_M_S
 
 
-def descent_setpoint(vehicle: VehicleState, hold_enu_m: np.ndarray, now_ns: int, config: WatchdogConfig) -> VelocityBodyYawspeed:
-    """The landing descent's setpoint: horizontally back toward ``hold_enu_m`` (local ENU m, the
-    position estimate where the landing began) at ``LAND_HOLD_GAIN_PER_S`` per metre (its norm at
-    most ``LAND_HOLD_MAX_M_S``), no yaw rate, and down at ``LAND_DESCENT_M_S``; zero horizontally
-    when the estimate is stale (older than ``telemetry_stale_ms``) or unknown."""
+def hold_setpoint(vehicle: VehicleState, hold_enu_m: np.ndarray, up_m_s: float, now_ns: int, config: WatchdogConfig) -> VelocityBodyYawspeed:
+    """The landing's and the take-off climb's setpoint: horizontally back toward ``hold_enu_m``
+    (local ENU m, the position estimate where the manoeuvre began) at ``LAND_HOLD_GAIN_PER_S`` per
+    metre (its norm at most ``LAND_HOLD_MAX_M_S``), no yaw rate, and ``up_m_s`` vertically (+ up);
+    zero horizontally when the estimate is stale (older than ``telemetry_stale_ms``) or unknown."""
     fresh = vehicle.t_posvel_ns > 0 and now_ns - vehicle.t_posvel_ns <= config.telemetry_stale_ms * _NS_PER_MS
     error_enu = np.asarray(hold_enu_m, dtype=np.float64)[:2] - vehicle.pos_enu_m[:2]
     if not fresh or not np.all(np.isfinite(error_enu)) or not math.isfinite(vehicle.yaw_enu_rad):
-        return dataclasses.replace(HOVER, down_m_s=LAND_DESCENT_M_S)
+        return dataclasses.replace(HOVER, down_m_s=-up_m_s)
     horizontal = LAND_HOLD_GAIN_PER_S * error_enu
     norm = float(np.linalg.norm(horizontal))
     if norm > LAND_HOLD_MAX_M_S:
         horizontal *= LAND_HOLD_MAX_M_S / norm
     forward, left = world_enu_to_vehicle(np.array([*horizontal, 0.0]), vehicle.yaw_enu_rad)[:2]
-    return velocity_flu_to_mavsdk(np.array([forward, left, -LAND_DESCENT_M_S, 0.0]))
+    return velocity_flu_to_mavsdk(np.array([forward, left, up_m_s, 0.0]))
+
+
+def climb_speed_m_s(height_to_go_m: float) -> float:
+    """The take-off climb's vertical speed (m/s, up) with ``height_to_go_m`` still to climb:
+    proportional, at most ``TAKEOFF_CLIMB_MAX_M_S``, never down (an unknown height: none)."""
+    if not math.isfinite(height_to_go_m):
+        return 0.0
+    return min(max(TAKEOFF_CLIMB_GAIN_PER_S * height_to_go_m, 0.0), TAKEOFF_CLIMB_MAX_M_S)
 
 
 def descent_time_limit_s(vehicle: VehicleState) -> float:

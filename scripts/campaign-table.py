@@ -44,7 +44,7 @@ def contact_while_landing(r: dict) -> bool:
 
 def contact_phase(r: dict) -> str | None:
     """When ground truth saw the contact: "take-off" (before offboard, as the follower's 1 Hz mode
-    log sees it), "flight" (offboard, before the goal), "after goal, offboard" (the brake, the dry
+    log sees it, or during the runtime's climb that ends the take-off in offboard), "flight" (offboard, before the goal), "after goal, offboard" (the brake, the dry
     run's retreat or its landing in offboard), "after goal, landing" (PX4's Hold or Land); None
     without one."""
     truth = r.get("ground_truth") or {}
@@ -52,7 +52,8 @@ def contact_phase(r: dict) -> str | None:
     if not contact:
         return None
     offboard_t, goal_t = truth.get("offboard_t_s"), truth.get("goal_reached_t_s")
-    if offboard_t is None or contact["t_s"] < offboard_t:
+    climb_s = (r.get("takeoff_climb") or {}).get("duration_s") or 0.0
+    if offboard_t is None or contact["t_s"] < offboard_t + climb_s:
         return "take-off"
     if goal_t is None or contact["t_s"] < goal_t:
         return "flight"

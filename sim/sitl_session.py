@@ -435,6 +435,7 @@ def merge_summary(
         "tracking_error_peak_m_s": flight.get("tracking_error_peak_m_s"),
         "brake": flight.get("brake"),
         "t_launch_to_offboard_s": flight.get("t_launch_to_offboard_s"),
+        "takeoff_climb": flight.get("takeoff_climb"),
         "wall_s": round(wall_s, 2),
         "level": request.level,
         "seed": request.seed,

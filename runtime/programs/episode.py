@@ -33,7 +33,7 @@ from ..contract import HOVER
 from ..flight import EpisodeResult, FlightLoop
 from ..state import MODE_OFFBOARD, VehicleError, VehicleState
 from ..vehicle import Vehicle
-from ..watchdog import TripCause
+from ..watchdog import TAKEOFF_HOLD_SHORT_M, TripCause
 from .stop import FlightPhase, Phase
 
 log = logging.getLogger(__name__)
@@ -79,6 +79,7 @@ class EpisodeScript:
         self.flight = flight
         self.status = status
         self.alive_while = alive_while
+        self.takeoff_climb: dict | None = None  # FlightLoop.climb's record, once the dry run climbed
         loop.on_landing = self._landing_in_offboard
 
     def _landing_in_offboard(self) -> None:
@@ -112,8 +113,10 @@ class EpisodeScript:
         on_refused: Callable[[EpisodeResult, int], Awaitable[None]],
         episodes: int = 1,
     ) -> EpisodeResult:
-        """Arm, take off, ``before_offboard()`` (may raise :class:`OffboardWithheld`: land, re-raise),
-        offboard, ``fly(state in offboard)``, pilot check, land.  If the autopilot refuses offboard,
+        """Arm, take off (the autopilot's take-off to its Hold, up to ``TAKEOFF_HOLD_SHORT_M`` short),
+        ``before_offboard()`` (may raise :class:`OffboardWithheld`: land, re-raise), offboard, the
+        rest of the climb (``FlightLoop.climb``, its record in ``takeoff_climb``), ``fly(state in
+        offboard)``, pilot check, land.  If the autopilot refuses offboard,
         ``on_refused(result, t_request_ns)`` records the unflown episode before the landing.
 
         ``episodes`` > 1 (a mission's waypoints): after each episode that reached its goal (the
@@ -124,7 +127,7 @@ class EpisodeScript:
         await self.vehicle.arm()
         self.flight.enter(Phase.TAKING_OFF)
         await self.vehicle.takeoff(takeoff_alt_m)
-        await self.alive_while(self.vehicle.wait_takeoff_done(takeoff_alt_m))
+        await self.alive_while(self.vehicle.wait_takeoff_done(takeoff_alt_m, TAKEOFF_HOLD_SHORT_M))
         for index in range(episodes):
             if index > 0:
                 # The telemetry shows a mode change up to a HEARTBEAT late: wait for the Hold, so
@@ -150,6 +153,12 @@ class EpisodeScript:
                 await on_refused(result, t_request_ns)
                 await self.land()
                 return result
+            if index == 0:  # the rest of the take-off, under the runtime's position hold
+                self.takeoff_climb = await self.loop.climb(takeoff_alt_m)
+                if self.takeoff_climb is None:
+                    log.warning("the pilot took over during the climb: not flying, the vehicle is theirs")
+                    return self._unflown(TripCause.PILOT_LEFT_OFFBOARD.value)
+                state = self.vehicle.state()
             self.flight.enter(Phase.EPISODE)
             result = await fly(state)
             self.flight.enter(Phase.HOLDING)
@@ -186,11 +195,15 @@ class EpisodeScript:
     async def _offboard_refused(self, err: VehicleError, t_request_ns: int) -> EpisodeResult:
         """The autopilot refused offboard (or never showed it): record the trip, make sure the
         vehicle is in Hold (offboard.stop also ends MAVSDK's setpoint re-sending), fly nothing."""
-        loop = self.loop
-        trip = loop.watchdog.refuse_start(TripCause.OFFBOARD_REFUSED, f"offboard did not start: {err}", t_request_ns, time.monotonic_ns())
+        trip = self.loop.watchdog.refuse_start(TripCause.OFFBOARD_REFUSED, f"offboard did not start: {err}", t_request_ns, time.monotonic_ns())
         await self.vehicle.stop_offboard()
+        return self._unflown(trip.cause.value)
+
+    def _unflown(self, abort_reason: str) -> EpisodeResult:
+        """The record of an episode that never flew the policy."""
+        loop = self.loop
         return EpisodeResult(
-            outcome="aborted", abort_reason=trip.cause.value, time_s=0.0, steps=0, frames_received=loop.frames_received,
+            outcome="aborted", abort_reason=abort_reason, time_s=0.0, steps=0, frames_received=loop.frames_received,
             missed_deadlines=0, bad_frames=0, step_ms={"p50": None, "p99": None, "max": None, "n": 0}, stage_ms={},
             watchdog_trips=loop.watchdog.records(), final_distance_m=float("nan"), frames_rejected=loop.frames_rejected,
         )  # fmt: skip

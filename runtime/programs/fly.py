@@ -301,6 +301,8 @@ class FieldProgram:
         except RecorderRefusal as err:
             self.summary["error"] = f"offboard refused: {err}"
             return EXIT_CONFIG
+        finally:
+            self.summary["takeoff_climb"] = script.takeoff_climb
         if loop.watchdog.pilot_took_over:
             return EXIT_FAILED
         flown = self.summary["episodes"]

@@ -17,8 +17,9 @@ Exit codes: 0 success; 1 timeout or aborted in flight; 2 the episode could not b
 refused, no autopilot, not healthy, takeoff failed, ...).  The summary is written in every case
 it can be: ``{outcome: success|timeout|aborted, abort_reason, time_s, frames, missed_deadlines,
 step_ms {p50, p99}, stage_ms {stage: {p50, p99}}, watchdog_trips [...], log,
-t_launch_to_offboard_s, goal_rel_home_enu_m, final_distance_m, tracking_error_peak_m_s, t_episode_start_s,
-injections, ...}``;
+t_launch_to_offboard_s, takeoff_climb, goal_rel_home_enu_m, final_distance_m, tracking_error_peak_m_s,
+t_episode_start_s, injections, ...}``; ``takeoff_climb`` is the climb in offboard that finishes the
+autopilot's take-off (``FlightLoop.climb``: {ended, from_m, to_m, drift_m, duration_s});
 ``time_s`` runs from offboard start to the goal, ``t_launch_to_offboard_s`` from this process's
 start to offboard confirmed by telemetry; ``t_episode_start_s`` is when the episode started (the
 zero of the trips' ``t_s``) and ``injections`` ``[{kind, t_s}]`` when each injected fault first
@@ -155,6 +156,7 @@ async def fly_episode(args: argparse.Namespace, summary: dict, signals: StopSign
 
     async def fly(state: VehicleState) -> EpisodeResult:
         summary["t_launch_to_offboard_s"] = round(process_age_s(), 3)
+        summary["takeoff_climb"] = script.takeoff_climb
         goal_enu_m = state.home_enu_m + args.goal_rel_home
         result = await _fly_with_faults(loop, policy, args.inject, goal_enu_m, args.timeout_s, summary)
         summary.update(result.summary())

@@ -33,9 +33,6 @@ TEMPORARILY_REJECTED = mavlink.MAV_RESULT_TEMPORARILY_REJECTED
 
 # OFFBOARD is entered only with a setpoint at most this old (PX4 wants the stream running first).
 OFFBOARD_ENTRY_MAX_SETPOINT_AGE_S = 0.5
-# Take-off is complete (-> Hold) within this height of the target (PX4: NAV_MC_ALT_RAD is 0.8 m;
-# tighter here so the vehicle really is at the episode's start height when Hold reports).
-TAKEOFF_ACCEPTANCE_M = 0.1
 # DO_SET_MODE can select these; PX4's manual modes need attitude sticks this vehicle does not fly.
 SELECTABLE_MODES = (HOLD, TAKEOFF, LAND, OFFBOARD, POSCTL)
 # Return mode: fly home at the current height, then land, once within this horizontal distance (m).
@@ -247,7 +244,9 @@ class Commander:
         elif not self._airborne_since_arm and t_s - self._t_armed_s >= self._params["COM_DISARM_PRFLT"]:
             self._disarm(t_s, "Disarmed: no takeoff")
             return
-        if self.mode == TAKEOFF and abs(kin.pos_enu_m[2] - self._target_enu_m[2]) < TAKEOFF_ACCEPTANCE_M:
+        # As PX4: the take-off is complete (-> Hold, which climbs on to the target) within
+        # NAV_MC_ALT_RAD (0.8 m) of its height; PX4 v1.16 SIH reported Hold 0.65-0.74 m short.
+        if self.mode == TAKEOFF and abs(kin.pos_enu_m[2] - self._target_enu_m[2]) < self._params["NAV_MC_ALT_RAD"]:
             target = self._target_enu_m
             self._switch(t_s, HOLD, kin)
             self._target_enu_m = target

@@ -49,6 +49,7 @@ def _defaults(takeoff_alt_m: float) -> list[Param]:
         Param("MIS_TAKEOFF_ALT", float(takeoff_alt_m), REAL32),  # m above home
         Param("MPC_LAND_SPEED", 0.7, REAL32),  # m/s
         Param("MPC_TKO_SPEED", 1.5, REAL32),  # m/s
+        Param("NAV_MC_ALT_RAD", 0.8, REAL32),  # m: the take-off is complete (-> Hold) within this of its height
         Param("SYS_HITL", 0, INT32),
     ]
 

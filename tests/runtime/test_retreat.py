@@ -14,7 +14,7 @@ from runtime.model import PolicyModel
 from runtime.contract import CONTROL_PERIOD_S
 from runtime.flight import RETREAT_TIME_MARGIN_S, FlightLoop
 from runtime.state import VehicleState
-from runtime.watchdog import LAND_DESCENT_M_S, LAND_DISARM_WAIT_S, LAND_HOLD_GAIN_PER_S, LAND_HOLD_MAX_M_S, descent_setpoint, RETREAT_APPROACH_DECEL_M_S2, RETREAT_MAX_SPEED_M_S, RETREAT_SPEED_M_S, RetreatTracker, retreat_path
+from runtime.watchdog import LAND_DESCENT_M_S, LAND_DISARM_WAIT_S, LAND_HOLD_GAIN_PER_S, LAND_HOLD_MAX_M_S, hold_setpoint, RETREAT_APPROACH_DECEL_M_S2, RETREAT_MAX_SPEED_M_S, RETREAT_SPEED_M_S, RetreatTracker, retreat_path
 from tests.runtime.test_brake import BRAKE_TAU_S, LaggingVehicle
 from tests.runtime.test_flight_loop import START, FakeCamera
 
@@ -248,18 +248,21 @@ def test_after_the_retreat_the_dry_run_lands_in_offboard_where_it_stopped(goal_s
 def test_the_landing_setpoint_holds_where_it_began_in_the_body_frame():
     """Back toward the held point at LAND_HOLD_GAIN_PER_S per metre, capped, in the body frame (here
     the vehicle faces north: a point 0.1 m east of it is to its right), down at LAND_DESCENT_M_S;
-    nothing horizontal on a stale estimate."""
+    nothing horizontal on a stale estimate.  The take-off's climb is the same law going up."""
     config = WatchdogConfig()
     now_ns = time.monotonic_ns()
     state = VehicleState(pos_enu_m=np.array([1.0, 2.0, 3.0]), vel_enu_m_s=np.zeros(3), t_posvel_ns=now_ns,
                          quat_enu_flu=np.array([np.cos(np.pi / 4), 0.0, 0.0, np.sin(np.pi / 4)]))  # yaw +90 deg: north
-    cmd = descent_setpoint(state, np.array([1.1, 2.0, 3.0]), now_ns, config)
+    cmd = hold_setpoint(state, np.array([1.1, 2.0, 3.0]), -LAND_DESCENT_M_S, now_ns, config)
     assert cmd.right_m_s == pytest.approx(0.1 * LAND_HOLD_GAIN_PER_S) and abs(cmd.forward_m_s) < 1e-9
     assert cmd.down_m_s == LAND_DESCENT_M_S and cmd.yawspeed_deg_s == 0.0
-    far = descent_setpoint(state, np.array([1.0, 7.0, 3.0]), now_ns, config)  # 5 m north: ahead, capped
+    far = hold_setpoint(state, np.array([1.0, 7.0, 3.0]), -LAND_DESCENT_M_S, now_ns, config)  # 5 m north: ahead, capped
     assert far.forward_m_s == pytest.approx(LAND_HOLD_MAX_M_S) and abs(far.right_m_s) < 1e-9
-    stale = descent_setpoint(state, np.array([1.0, 7.0, 3.0]), now_ns + int(config.telemetry_stale_ms * 2e6), config)
+    stale = hold_setpoint(state, np.array([1.0, 7.0, 3.0]), -LAND_DESCENT_M_S, now_ns + int(config.telemetry_stale_ms * 2e6), config)
     assert (stale.forward_m_s, stale.right_m_s, stale.down_m_s) == (0.0, 0.0, LAND_DESCENT_M_S)
+    up = hold_setpoint(state, np.array([1.1, 2.0, 3.0]), 0.4, now_ns, config)
+    assert up.down_m_s == pytest.approx(-0.4) and up.right_m_s == pytest.approx(cmd.right_m_s)
+    assert hold_setpoint(state, state.pos_enu_m, 0.4, now_ns + int(config.telemetry_stale_ms * 2e6), config).down_m_s == pytest.approx(-0.4)
 
 
 @pytest.mark.flight

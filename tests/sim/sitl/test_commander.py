@@ -80,7 +80,10 @@ def test_takeoff_climbs_then_holds_at_the_takeoff_altitude(commander):
     assert commander.landed_state == mavlink.MAV_LANDED_STATE_TAKEOFF
     cmd = commander.velocity_command(0.5, climbing)
     assert cmd.vel_enu_m_s[2] > 0.5 and abs(cmd.vel_enu_m_s[0]) < 1e-9
-    commander.update(1.5, kin(z=HOME[2] + TAKEOFF_ALT_M - 0.05))
+    commander.update(1.0, kin(z=HOME[2] + TAKEOFF_ALT_M - 0.85))
+    assert commander.mode == TAKEOFF
+    # As PX4 v1.16 (NAV_MC_ALT_RAD, 0.8 m): complete within 0.8 m of the height, Hold climbs on.
+    commander.update(1.5, kin(z=HOME[2] + TAKEOFF_ALT_M - 0.75))
     assert commander.mode == HOLD and commander.landed_state == mavlink.MAV_LANDED_STATE_IN_AIR
     assert [m for _, m in commander.mode_log] == ["HOLD", "TAKEOFF", "HOLD"]
     # Hold targets the take-off point itself.

@@ -49,6 +49,7 @@ from .contract import (
 )
 from .contract.constants import GOAL_REACHED_RADIUS_M
 from .contract.frames import world_enu_to_vehicle
+from .landing_site import SeenSurfaces, choose_landing_site
 from .log.recorder import Recorder
 from .model import PolicyModel
 from .policy_step import PolicyMemory, StepResult, compute_step
@@ -185,6 +186,7 @@ class FlightLoop:
         self._memory = PolicyMemory(model)
         self._step_started_ns = 0
         self._flown_enu_m: list[np.ndarray] = []  # the estimate at each step of the episode (local ENU m)
+        self._seen = SeenSurfaces()  # what its depth frames showed, where it may land (runtime.landing_site)
         self.handed_over_after_goal = False  # a mode other than offboard came during the last retreat or landing
         self.landing_in_offboard = False  # the last episode's landing in offboard began (:meth:`descend`)
         self.on_landing: Callable[[], None] | None = None  # called when it begins (a program's phase)
@@ -233,17 +235,27 @@ class FlightLoop:
         """Brake (``runtime.watchdog.brake_setpoint`` at the control rate) until the vehicle has
         stopped (``runtime.watchdog.brake_ended``), then Hold; returns the brake's record (None if
         the pilot has the vehicle: nothing sent).  With ``retreat_m`` > 0 and the vehicle stopped,
-        :meth:`retreat` and brake again before the Hold (the record's ``retreat``).  With ``land``
+        :meth:`retreat` to the landing site (``runtime.landing_site.choose_landing_site``, ``retreat_m``
+        back unless the depth frames showed a surface too near it; the record's ``landing_site``;
+        ``mission.land_site_search_m`` = 0: ``retreat_m`` back) and brake again before the Hold (the record's ``retreat``).  With ``land``
         and the vehicle stopped, :meth:`descend` instead of the Hold (the record's ``descent``);
         Hold only if it did not reach the ground.  Raises VehicleError if a command fails."""
         record = await self._brake()
         if record is None:
             return None
+        site = None
+        if retreat_m > 0.0 and record["ended"] == "stopped" and (mission := self.config.mission).land_site_search_m > 0.0:
+            site = choose_landing_site(np.array(self._flown_enu_m).reshape(-1, 3), self._seen, float(self.vehicle.state().pos_enu_m[2]),
+                                       retreat_m, mission.land_site_search_m, mission.land_clearance_m)  # fmt: skip
+            (log.info if site.clear else log.warning)("landing site: %s", site)
+            retreat_m = site.back_m
         if retreat_m > 0.0 and record["ended"] == "stopped":
             retreat = await self.retreat(retreat_m)
             if retreat is None or (record := await self._brake()) is None:
                 return None
             record["retreat"] = retreat
+        if site is not None:
+            record["landing_site"] = site.record()
         if land and record["ended"] == "stopped":
             descent = await self.descend()
             if descent is None:
@@ -444,12 +456,14 @@ class FlightLoop:
     async def fly(self, goal_enu_m: np.ndarray, timeout_s: float, landing_next: bool = False) -> EpisodeResult:
         """Fly the policy from now (offboard active) to ``goal_enu_m`` (local ENU, m).  With
         ``landing_next`` (a dry run's last goal), a goal reached is followed by the brake, a retreat
-        of ``mission.land_retreat_m`` back along the path flown (:meth:`retreat`), the brake again,
+        back along the path flown to the landing site (:meth:`retreat`: ``mission.land_retreat_m``
+        back, or the nearest point clear of what the depth frames showed), the brake again,
         then the landing in offboard (:meth:`descend`, ``mission.land_in_offboard``) or Hold."""
         self.set_goal(goal_enu_m)
         settle_heap()
         episode = _Episode(t0_ns=time.monotonic_ns(), timeout_s=timeout_s, landing_next=landing_next)
         self._flown_enu_m = []
+        self._seen = SeenSurfaces()
         self.handed_over_after_goal = self.landing_in_offboard = False
         self.watchdog.start(episode.t0_ns, self.vehicle.state())
         self._on_watchdog_event({"event": "start", "detail": repr(self.config.watchdog), "t_s": 0.0})
@@ -651,6 +665,8 @@ class FlightLoop:
         if sent:
             self.watchdog.note_command(t_cmd, cmd_flu)
         self._after_command(frame, result)
+        if episode.landing_next and state.home_enu_m is not None:  # the floor is at home's height
+            self._seen.add_frame(frame.depth_m, state.pos_enu_m, state.quat_enu_flu, float(state.home_enu_m[2]))
         self._memory.advance(result)
         stages_ms = {
             "delivery": (frame.t_grab_ns - frame.t_capture_ns) / _NS_PER_MS,  # capture -> the source handed it over

@@ -238,11 +238,11 @@ def retreat_path(flown_enu_m: np.ndarray, distance_m: float) -> np.ndarray:
     points = np.asarray(flown_enu_m, dtype=np.float64)[::-1]
     if len(points) < 2 or distance_m <= 0.0:
         return points[:1].copy()
-    walked_m = _arc_lengths_m(points)
+    walked_m = arc_lengths_m(points)
     if walked_m[-1] <= distance_m:
         return points.copy()
     i = int(np.searchsorted(walked_m, distance_m))  # walked_m[i - 1] < distance_m <= walked_m[i]
-    return np.vstack([points[:i], _path_point(points, walked_m, distance_m)])
+    return np.vstack([points[:i], path_point(points, walked_m, distance_m)])
 
 
 class RetreatTracker:
@@ -261,17 +261,17 @@ class RetreatTracker:
     def __init__(self, path_enu_m: np.ndarray, integral: bool = True) -> None:
         self.path = np.asarray(path_enu_m, dtype=np.float64)
         self.integral = integral  # off where the runtime corrects the velocity estimate (runtime.tracking.VelocityBias)
-        self._at_m = _arc_lengths_m(self.path)
+        self._at_m = arc_lengths_m(self.path)
         self.length_m = float(self._at_m[-1])
         self._integral = np.zeros(2)
 
     def reference(self, elapsed_s: float) -> tuple[np.ndarray, np.ndarray]:
         """The reference point (world ENU m) and its velocity (m/s) ``elapsed_s`` into the retreat."""
         along_m = min(RETREAT_SPEED_M_S * max(elapsed_s, 0.0), self.length_m)
-        point = _path_point(self.path, self._at_m, along_m)
+        point = path_point(self.path, self._at_m, along_m)
         if along_m >= self.length_m or self.length_m <= 0.0:
             return point, np.zeros(3)
-        ahead = _path_point(self.path, self._at_m, min(along_m + 0.05, self.length_m)) - point
+        ahead = path_point(self.path, self._at_m, min(along_m + 0.05, self.length_m)) - point
         norm = float(np.linalg.norm(ahead[:2]))
         velocity = np.zeros(3) if norm <= 1e-9 else np.array([*(ahead[:2] / norm * RETREAT_SPEED_M_S), 0.0])
         return point, velocity
@@ -307,12 +307,12 @@ class RetreatTracker:
         return float(np.linalg.norm(self.path[-1, :2] - np.asarray(pos_enu_m)[:2])) < RETREAT_ARRIVED_M
 
 
-def _arc_lengths_m(path: np.ndarray) -> np.ndarray:
+def arc_lengths_m(path: np.ndarray) -> np.ndarray:
     """[N] horizontal length along the polyline ``path`` [N, 3] to each of its points (m)."""
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path[:, :2], axis=0), axis=1))])
 
 
-def _path_point(path: np.ndarray, at_m: np.ndarray, along_m: float) -> np.ndarray:
+def path_point(path: np.ndarray, at_m: np.ndarray, along_m: float) -> np.ndarray:
     """The point ``along_m`` metres (horizontal length) along the polyline ``path``."""
     if len(path) == 1 or along_m <= 0.0:
         return path[0]

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from runtime.contract.camera import focal_length_px
 from runtime.contract.constants import CAMERA_HFOV_RAD, SIM_CAMERA_HEIGHT_PX, SIM_CAMERA_WIDTH_PX
 
 from .rotations import quat_from_euler, quat_multiply, quat_rotate
@@ -39,7 +40,7 @@ class CameraModel:
     @property
     def fx_px(self) -> float:
         """Focal length in pixels (horizontal and vertical: square pixels)."""
-        return (self.width_px / 2.0) / math.tan(self.hfov_rad / 2.0)
+        return focal_length_px(self.width_px, self.hfov_rad)
 
     @property
     def fy_px(self) -> float:

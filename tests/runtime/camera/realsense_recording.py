@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from runtime.contract.camera import focal_length_px
 from runtime.contract.constants import CAMERA_RATE_HZ
 
 WIDTH_PX, HEIGHT_PX = 424, 240  # a D455 mode of the contract's 848:480 aspect
@@ -78,7 +79,7 @@ def write_recording(path: Path, frames: RenderedFrames, depth_units_m: float = D
     import pyrealsense2 as rs
 
     h, w = frames.depth_m.shape[1:]
-    fx = (w / 2.0) / np.tan(np.radians(87.0) / 2.0)  # the contract's HFOV, the sim's pinhole
+    fx = focal_length_px(w)  # the contract's pinhole, the sim's
     intrinsics = rs.intrinsics()
     intrinsics.width, intrinsics.height, intrinsics.fx, intrinsics.fy = w, h, fx, fx
     intrinsics.ppx, intrinsics.ppy, intrinsics.model, intrinsics.coeffs = w / 2.0, h / 2.0, rs.distortion.none, [0.0] * 5

@@ -481,7 +481,7 @@ class MissionConfig:
     # ... or, where the depth frames of the episode showed a surface within land_clearance_m (m,
     # horizontal) of that point below the vehicle, the point of the path nearest to it, within
     # land_site_search_m of the path's end, that is that clear (the path is free at the height flown,
-    # not below it: runtime.landing_site).  land_site_search_m = 0: land_retreat_m, unchecked.
+    # not below it: runtime.watchdog.choose_landing_site).  land_site_search_m = 0: land_retreat_m, unchecked.
     land_site_search_m: float = 5.0
     land_clearance_m: float = 0.8  # the vehicle's radius 0.2 m + the landing's true drift (PX4 SIH: 0.74 m at most)
     # With allow_arm_takeoff: then land under the runtime's own control (offboard, descending while

@@ -49,7 +49,7 @@ from .contract import (
 )
 from .contract.constants import GOAL_REACHED_RADIUS_M
 from .contract.frames import world_enu_to_vehicle
-from .landing_site import SeenSurfaces, choose_landing_site
+from .camera.surfaces import SeenSurfaces
 from .log.recorder import Recorder
 from .model import PolicyModel
 from .policy_step import PolicyMemory, StepResult, compute_step
@@ -71,6 +71,7 @@ from .watchdog import (
     brake_ended,
     brake_record,
     brake_setpoint,
+    choose_landing_site,
     climb_speed_m_s,
     descent_time_limit_s,
     hold_setpoint,
@@ -186,7 +187,7 @@ class FlightLoop:
         self._memory = PolicyMemory(model)
         self._step_started_ns = 0
         self._flown_enu_m: list[np.ndarray] = []  # the estimate at each step of the episode (local ENU m)
-        self._seen = SeenSurfaces()  # what its depth frames showed, where it may land (runtime.landing_site)
+        self._seen = SeenSurfaces()  # what its depth frames showed, where it may land (runtime.camera.surfaces)
         self.handed_over_after_goal = False  # a mode other than offboard came during the last retreat or landing
         self.landing_in_offboard = False  # the last episode's landing in offboard began (:meth:`descend`)
         self.on_landing: Callable[[], None] | None = None  # called when it begins (a program's phase)
@@ -235,7 +236,7 @@ class FlightLoop:
         """Brake (``runtime.watchdog.brake_setpoint`` at the control rate) until the vehicle has
         stopped (``runtime.watchdog.brake_ended``), then Hold; returns the brake's record (None if
         the pilot has the vehicle: nothing sent).  With ``retreat_m`` > 0 and the vehicle stopped,
-        :meth:`retreat` to the landing site (``runtime.landing_site.choose_landing_site``, ``retreat_m``
+        :meth:`retreat` to the landing site (``runtime.watchdog.choose_landing_site``, ``retreat_m``
         back unless the depth frames showed a surface too near it; the record's ``landing_site``;
         ``mission.land_site_search_m`` = 0: ``retreat_m`` back) and brake again before the Hold (the record's ``retreat``).  With ``land``
         and the vehicle stopped, :meth:`descend` instead of the Hold (the record's ``descent``);

@@ -4,7 +4,8 @@ summaries.jsonl (one `cmnav sitl --json` summary per line): per level the succes
 Wilson 95 % interval, crashes, time limits, the watchdog's trips (false ones: trips in flights that
 did not crash, nothing being injected), crashes caught within 1.5 s, the largest sustained
 tracking error, contacts after the goal (an autopilot that drifts on after the episode), the
-speed when the runtime commanded Hold, and the median tracking error p99 against the command.
+speed when the runtime commanded Hold, the median tracking error p99 against the command, and
+where the dry runs landed (runtime.watchdog.choose_landing_site).
 
     python scripts/campaign-table.py runs/px4-campaign/default/summaries.jsonl
 """
@@ -17,6 +18,7 @@ import statistics
 import sys
 from pathlib import Path
 
+from runtime.config import MissionConfig
 from training.stats import wilson_interval
 
 
@@ -101,16 +103,21 @@ def main(path: str) -> int:
     print("watchdog trips by cause:", dict(all_trips) or "none")
     print()
     print("| level | contacts: take-off | in flight before the goal | after the goal, offboard (brake, retreat, landing) | "
-          "after the goal, PX4's Hold/Land | retreats (ended: count) | landings in offboard (ended: count) |")
-    print("|---|---|---|---|---|---|---|")
+          "after the goal, PX4's Hold/Land | retreats (ended: count) | landings in offboard (ended: count) | "
+          "landing sites: chosen / moved off the default mission.land_retreat_m / none clear |")
+    print("|---|---|---|---|---|---|---|---|")
     for level, rs in sorted(by_level.items()):
         phases = collections.Counter(contact_phase(r) for r in rs)
         retreats = collections.Counter(((r.get("brake") or {}).get("retreat") or {}).get("ended") for r in rs)
         descents = collections.Counter(((r.get("brake") or {}).get("descent") or {}).get("ended") for r in rs)
         retreats.pop(None, None)
         descents.pop(None, None)
+        sites = [(r.get("brake") or {}).get("landing_site") for r in rs]
+        sites = [s for s in sites if s is not None]
+        moved = sum(s["back_m"] != MissionConfig().land_retreat_m for s in sites)  # the campaign flies the default
         print(f"| {level} | {phases['take-off']} | {phases['flight']} | {phases['after goal, offboard']} | "
-              f"{phases['after goal, landing'] + phases['after goal']} | {dict(retreats) or '-'} | {dict(descents) or '-'} |")
+              f"{phases['after goal, landing'] + phases['after goal']} | {dict(retreats) or '-'} | {dict(descents) or '-'} | "
+              f"{len(sites)} / {moved} / {sum(not s['clear'] for s in sites)} |")
     return 0
 
 

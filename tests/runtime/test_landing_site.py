@@ -1,7 +1,8 @@
-"""Where the dry run lands (runtime.landing_site): the path flown is free at the height flown, not
-below it (on PX4 SIH a flight that passed over a post retreated onto it and touched it while
-landing).  The contract's camera against the sim's, the surfaces seen in rendered frames, the
-choice of the site, then the flight loop landing clear of a post under its path."""
+"""Where the dry run lands (runtime.camera.surfaces, runtime.watchdog.choose_landing_site): the
+path flown is free at the height flown, not below it (on PX4 SIH a flight that passed over a post
+retreated onto it and touched it while landing).  The contract's camera against the sim's, the
+surfaces seen in rendered frames, the choice of the site, then the flight loop landing clear of a
+post under its path."""
 
 import asyncio
 import math
@@ -17,7 +18,8 @@ from runtime.contract import CONTROL_PERIOD_S
 from runtime.contract.camera import depth_points_flu, focal_length_px
 from runtime.contract.constants import CAMERA_HFOV_RAD
 from runtime.contract.frames import quat_from_euler
-from runtime.landing_site import SEEN_CELL_M, SEEN_FLOOR_BAND_M, SEEN_MAX_DEPTH_M, SeenSurfaces, choose_landing_site
+from runtime.camera.surfaces import SEEN_CELL_M, SEEN_FLOOR_BAND_M, SEEN_MAX_DEPTH_M, SEEN_MIN_FRAMES, SeenSurfaces
+from runtime.watchdog import choose_landing_site
 from sim.camera import CameraModel
 from sim.render import render
 from sim.world import WorldBatch
@@ -65,7 +67,7 @@ def test_the_contracts_camera_is_the_sims():
 
 def test_rendered_frames_show_the_post_and_the_walls_not_the_floor():
     seen = SeenSurfaces()
-    for x in (0.5, 1.0, 1.5):  # flying +x at 1.5 m toward the post
+    for x in np.arange(0.5, 1.51, 0.1):  # flying +x at 1.5 m toward the post, 11 frames
         assert seen.add_frame(_depth(_room(True), np.array([x, 1.0, 1.5]), 0.0), np.array([x, 1.0, 1.5]), quat_from_euler(0.0, 0.0, 0.0), 0.0) > 0
     # The post's cells hold it, the lowest point seen on it near its foot's visible part (above the floor band)
     post_clearance = seen.clearance_m(POST_XY_M[None], POST_TOP_M + 0.1)
@@ -78,6 +80,24 @@ def test_rendered_frames_show_the_post_and_the_walls_not_the_floor():
     assert seen.clearance_m(np.array([[3.0, 0.05]]), 3.0)[0] <= SEEN_CELL_M
     # A depth frame with nothing valid adds nothing.
     assert seen.add_frame(np.zeros((120, 212), np.float32), np.array([1.0, 1.0, 1.5]), quat_from_euler(0.0, 0.0, 0.0), 0.0) == 0
+
+
+def test_a_surface_counts_once_frames_show_it_and_the_floor_never_through_an_estimate_off_by_degrees():
+    pose = np.array([1.0, 1.0, 1.5])
+    depth = _depth(_room(True), pose, 0.0)
+    seen = SeenSurfaces()
+    for n in range(1, SEEN_MIN_FRAMES + 1):
+        seen.add_frame(depth, pose, quat_from_euler(0.0, 0.0, 0.0), 0.0)
+        assert (seen.clearance_m(POST_XY_M[None], 3.0)[0] <= 0.1) == (n >= SEEN_MIN_FRAMES), n
+    # The floor, 1.5-5 m ahead, seen through an estimate 0.15 m low and pitched or rolled 3 degrees
+    # off (PX4 SIH's floor points lay within 0.2 m + 0.1 x range of it): not a surface.
+    room = _room(False)
+    seen = SeenSurfaces()
+    for roll, pitch in ((0.0, 0.05), (0.0, -0.05), (0.05, 0.0), (-0.05, 0.0)):
+        for _ in range(SEEN_MIN_FRAMES):
+            seen.add_frame(_depth(room, pose, 0.0), pose - [0.0, 0.0, 0.15], quat_from_euler(roll, pitch, 0.0), 0.0)
+    floor_ahead = np.array([[x, 1.0] for x in np.arange(2.5, 6.0, 0.1)])
+    assert np.all(seen.clearance_m(floor_ahead, 1.8) > 0.5)  # (the ceiling, at 3 m, is a surface: above it)
 
 
 def _seen_along(path: np.ndarray, post: bool) -> SeenSurfaces:
@@ -100,7 +120,7 @@ def test_the_site_is_the_preferred_one_unless_a_surface_seen_is_too_near():
     assert abs(site.back_m - 1.5) <= 0.9  # the nearest clear one: 0.8 m either side of the post, and a cell
     # Surfaces seen only above the vehicle (the ceiling at 3 m) are not in the way down.
     ahead = np.array([[end + 0.5, 1.0]])
-    assert seen.clearance_m(ahead, 3.5)[0] <= SEEN_CELL_M and seen.clearance_m(ahead, 1.8)[0] > 0.8
+    assert seen.clearance_m(ahead, 3.5)[0] <= 2 * SEEN_CELL_M and seen.clearance_m(ahead, 1.8)[0] > 0.8
     # Nothing clear within the search: the clearest point, and it says it is not clear.
     site = choose_landing_site(path, seen, 1.5, 1.5, 5.0, 3.0)
     clearest = max(seen.clearance_m(np.array([[end - b, 1.0]]), 1.8)[0] for b in np.arange(0.0, end - 1.0 + 1e-9, 0.1))

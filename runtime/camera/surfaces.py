@@ -1,0 +1,71 @@
+"""What the depth frames of an episode showed below the vehicle, in the estimate's local ENU
+frame: where a dry run may land (``runtime.watchdog.choose_landing_site``).  The path flown is
+free at the height it was flown, not below it: on PX4 SIH a flight that passed over a 2.9 m post at
+4.3 m retreated 1.5 m along its path, stopped 0.38 m from the post and touched it while landing
+(level 6, seed 7003).  Each step's frame adds the surfaces it shows (walls, obstacles; not the
+floor) to a horizontal grid.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..contract.camera import depth_points_flu
+from ..contract.frames import quat_rotate
+
+SEEN_CELL_M = 0.1  # the grid's cell side
+SEEN_SAMPLE_COLS, SEEN_SAMPLE_ROWS = 53, 30  # pixels sampled per frame (the sim's 212 x 120 at a stride of 4)
+# Beyond this range a D455's depth error (about 2 % at 4 m, growing with the square of range) and
+# the pose's put a point in the wrong cell or the floor among the surfaces.
+SEEN_MAX_DEPTH_M = 5.0
+# A point within SEEN_FLOOR_BAND_M + SEEN_FLOOR_BAND_PER_M x its range of the floor is the floor:
+# seen through PX4 SIH's estimate (its height, its attitude, the frame taken before the step's
+# state), floor points lay up to 0.42 / 0.52 / 0.65 / 0.72 m above it at 2-3 / 3-4 / 4-5 / 5-6 m
+# range (p99.9 of 416,000 on 20 flights at level 0).
+SEEN_FLOOR_BAND_M = 0.2
+SEEN_FLOOR_BAND_PER_M = 0.1
+# ... and rarer ones beyond: a cell is a surface once that many frames showed one in it (an obstacle
+# in view is in tens of frames, each with several points).
+SEEN_MIN_FRAMES = 3
+
+
+class SeenSurfaces:
+    """Surfaces (not the floor) the depth frames of an episode showed, as the lowest height seen
+    in each cell of a horizontal grid of ``SEEN_CELL_M`` (local ENU, the estimate's frame)."""
+
+    def __init__(self) -> None:
+        self._lowest_m: dict[tuple[int, int], float] = {}
+        self._frames: dict[tuple[int, int], int] = {}  # how many frames showed a surface in the cell
+
+    def __len__(self) -> int:
+        """The cells that are surfaces (shown by SEEN_MIN_FRAMES frames)."""
+        return sum(n >= SEEN_MIN_FRAMES for n in self._frames.values())
+
+    def add_frame(self, depth_m: np.ndarray, pos_enu_m: np.ndarray, quat_enu_flu: np.ndarray, floor_z_m: float) -> int:
+        """Add the surfaces frame ``depth_m`` shows from the camera at ``pos_enu_m`` with attitude
+        ``quat_enu_flu`` (the camera at the body origin, looking along body +x: the contract's
+        mount), the floor at height ``floor_z_m``; returns how many points were surfaces."""
+        points = depth_points_flu(depth_m, SEEN_SAMPLE_COLS, SEEN_SAMPLE_ROWS, SEEN_MAX_DEPTH_M)
+        world = np.asarray(pos_enu_m, dtype=np.float64) + quat_rotate(np.asarray(quat_enu_flu, dtype=np.float64), points)
+        band_m = SEEN_FLOOR_BAND_M + SEEN_FLOOR_BAND_PER_M * np.linalg.norm(points, axis=1)
+        world = world[world[:, 2] > floor_z_m + band_m]
+        if len(world) == 0:
+            return 0
+        cells, inverse = np.unique(np.floor(world[:, :2] / SEEN_CELL_M).astype(np.int64), axis=0, return_inverse=True)
+        lowest = np.full(len(cells), np.inf)
+        np.minimum.at(lowest, inverse.reshape(-1), world[:, 2])
+        for (i, j), z in zip(cells.tolist(), lowest.tolist()):
+            self._frames[(i, j)] = self._frames.get((i, j), 0) + 1
+            if z < self._lowest_m.get((i, j), np.inf):
+                self._lowest_m[(i, j)] = z
+        return len(world)
+
+    def clearance_m(self, points_xy_m: np.ndarray, below_z_m: float) -> np.ndarray:
+        """[N] horizontal distance from each point (N, 2) to the nearest cell centre with a surface
+        seen below height ``below_z_m``; inf where there is none."""
+        points = np.asarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
+        cells = [cell for cell, z in self._lowest_m.items() if z < below_z_m and self._frames[cell] >= SEEN_MIN_FRAMES]
+        if not cells:
+            return np.full(len(points), np.inf)
+        centres = (np.array(cells, dtype=np.float64) + 0.5) * SEEN_CELL_M
+        return np.sqrt(((points[:, None, :] - centres[None, :, :]) ** 2).sum(axis=2).min(axis=1))

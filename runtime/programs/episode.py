@@ -33,7 +33,7 @@ from ..contract import HOVER
 from ..flight import EpisodeResult, FlightLoop
 from ..state import MODE_OFFBOARD, VehicleError, VehicleState
 from ..vehicle import Vehicle
-from ..watchdog import TAKEOFF_HOLD_SHORT_M, TripCause
+from ..watchdog import TAKEOFF_HOLD_SHORT_M, TripCause, measured_speed_m_s
 from .stop import FlightPhase, Phase
 
 log = logging.getLogger(__name__)
@@ -197,6 +197,15 @@ class EpisodeScript:
         vehicle is in Hold (offboard.stop also ends MAVSDK's setpoint re-sending), fly nothing."""
         trip = self.loop.watchdog.refuse_start(TripCause.OFFBOARD_REFUSED, f"offboard did not start: {err}", t_request_ns, time.monotonic_ns())
         await self.vehicle.stop_offboard()
+        # The autopilot's Hold may still be climbing on to the take-off's height (PX4 ends the
+        # take-off up to NAV_MC_ALT_RAD short): the Land, if one follows, waits for it to settle
+        # (half the brake's speed: the estimate lags the vehicle).
+        watchdog = self.loop.config.watchdog
+        try:
+            await self.alive_while(self.vehicle.wait_until(
+                lambda s: measured_speed_m_s(s) < 0.5 * watchdog.brake_speed_m_s, watchdog.brake_timeout_s, "settled in Hold"))  # fmt: skip
+        except VehicleError as wait_err:
+            log.warning("still moving in the autopilot's Hold: %s", wait_err)
         return self._unflown(trip.cause.value)
 
     def _unflown(self, abort_reason: str) -> EpisodeResult:

@@ -124,7 +124,7 @@ async def stop_on_signal(
         "phase": phase.value,
         "action": action.value,
         "t_s": round((t_ns - t_start_ns) / 1e9, 3),
-        "time_unix_s": round(signals.t_unix_s or time.time(), 3),
+        "time_unix_s": round(signals.t_unix_s or time.time(), 6),  # microseconds: a handler can run within 1 ms of the signal
     }
     log.warning("stopped on %s while %s: %s", cause, phase.value, action.value)
     if loop is not None and loop.recorder is not None:

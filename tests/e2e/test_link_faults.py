@@ -65,7 +65,9 @@ def test_lossy_delayed_duplicating_link_flies_without_a_false_trip(goal_seeker, 
 def test_blackout_past_telemetry_stale_trips_hovers_and_holds_once_the_link_is_back(goal_seeker, tmp_path):
     blackout_s = 0.8
     assert WATCHDOG.telemetry_stale_ms / 1000.0 < blackout_s < COM_OF_LOSS_T_S
-    flight = fly_degraded(goal_seeker, tmp_path, [Impairment(start_s=1.5, end_s=1.5 + blackout_s, blackout=True)])
+    # From 3 s after the OFFBOARD entry: the climb's last metre (about 1 s, FlightLoop.climb) is over
+    # and the episode flies.
+    flight = fly_degraded(goal_seeker, tmp_path, [Impairment(start_s=3.0, end_s=3.0 + blackout_s, blackout=True)])
     episode = flight.episode
     assert episode["abort_reason"] == "stale_telemetry", f"{episode}\n{flight.log_text[-4000:]}"
     trip = episode["watchdog_trips"][0]

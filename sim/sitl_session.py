@@ -404,8 +404,10 @@ def merge_summary(
         # The runtime believed it arrived but ground truth disagrees: report what happened.
         log.error("runtime reported success but the vehicle came no nearer than %.2f m to the goal", closest_m)
         outcome = "aborted"
+    # The frames served from the episode's start (the dry run's climb in offboard comes first) to offboard's end.
+    t_frames_from = flight.get("t_episode_start_s", t_offboard)
     frame_fracs = [f for t, f in zip(trace["frame_t_s"], trace["invalid_depth_frac"])
-                   if (t_offboard is None or t >= t_offboard) and (t_left is None or t <= t_left)]  # fmt: skip
+                   if (t_frames_from is None or t >= t_frames_from) and (t_left is None or t <= t_left)]  # fmt: skip
     plot_path = plot_top_view(
         run_dir / "trajectory.png", episode["room_size_m"], episode["boxes"], episode["start_enu_m"], goal,
         flown if len(flown) >= 2 else positions,

@@ -238,25 +238,26 @@ class FlightLoop:
         the pilot has the vehicle: nothing sent).  With ``retreat_m`` > 0 and the vehicle stopped,
         :meth:`retreat` to the landing site (``runtime.watchdog.choose_landing_site``, ``retreat_m``
         back unless the depth frames showed a surface too near it; the record's ``landing_site``;
-        ``mission.land_site_search_m`` = 0: ``retreat_m`` back) and brake again before the Hold (the record's ``retreat``).  With ``land``
-        and the vehicle stopped, :meth:`descend` instead of the Hold (the record's ``descent``);
+        ``mission.land_site_search_m`` = 0: ``retreat_m`` back) and brake again before the Hold
+        (the record's ``retreat``).  With ``land`` and the vehicle stopped, :meth:`descend` instead of the Hold (the record's ``descent``);
         Hold only if it did not reach the ground.  Raises VehicleError if a command fails."""
         record = await self._brake()
         if record is None:
             return None
-        site = None
-        if retreat_m > 0.0 and record["ended"] == "stopped" and (mission := self.config.mission).land_site_search_m > 0.0:
-            site = choose_landing_site(np.array(self._flown_enu_m).reshape(-1, 3), self._seen, float(self.vehicle.state().pos_enu_m[2]),
-                                       retreat_m, mission.land_site_search_m, mission.land_clearance_m)  # fmt: skip
-            (log.info if site.clear else log.warning)("landing site: %s", site)
-            retreat_m = site.back_m
         if retreat_m > 0.0 and record["ended"] == "stopped":
-            retreat = await self.retreat(retreat_m)
-            if retreat is None or (record := await self._brake()) is None:
-                return None
-            record["retreat"] = retreat
-        if site is not None:
-            record["landing_site"] = site.record()
+            site = None
+            if (mission := self.config.mission).land_site_search_m > 0.0:
+                site = choose_landing_site(np.array(self._flown_enu_m).reshape(-1, 3), self._seen, float(self.vehicle.state().pos_enu_m[2]),
+                                           retreat_m, mission.land_site_search_m, mission.land_clearance_m)  # fmt: skip
+                (log.info if site.clear else log.warning)("landing site: %s", site)
+                retreat_m = site.back_m
+            if retreat_m > 0.0:
+                retreat = await self.retreat(retreat_m)
+                if retreat is None or (record := await self._brake()) is None:
+                    return None
+                record["retreat"] = retreat
+            if site is not None:
+                record["landing_site"] = site.record()
         if land and record["ended"] == "stopped":
             descent = await self.descend()
             if descent is None:

@@ -106,6 +106,7 @@ def main(path: str) -> int:
           "after the goal, PX4's Hold/Land | retreats (ended: count) | landings in offboard (ended: count) | "
           "landing sites: chosen / moved off the default mission.land_retreat_m / none clear |")
     print("|---|---|---|---|---|---|---|---|")
+    default_retreat_m = MissionConfig().land_retreat_m  # the campaigns fly the default
     for level, rs in sorted(by_level.items()):
         phases = collections.Counter(contact_phase(r) for r in rs)
         retreats = collections.Counter(((r.get("brake") or {}).get("retreat") or {}).get("ended") for r in rs)
@@ -114,7 +115,7 @@ def main(path: str) -> int:
         descents.pop(None, None)
         sites = [(r.get("brake") or {}).get("landing_site") for r in rs]
         sites = [s for s in sites if s is not None]
-        moved = sum(s["back_m"] != MissionConfig().land_retreat_m for s in sites)  # the campaign flies the default
+        moved = sum(s["back_m"] != default_retreat_m for s in sites)
         print(f"| {level} | {phases['take-off']} | {phases['flight']} | {phases['after goal, offboard']} | "
               f"{phases['after goal, landing'] + phases['after goal']} | {dict(retreats) or '-'} | {dict(descents) or '-'} | "
               f"{len(sites)} / {moved} / {sum(not s['clear'] for s in sites)} |")

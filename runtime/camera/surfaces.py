@@ -34,12 +34,15 @@ class SeenSurfaces:
     in each cell of a horizontal grid of ``SEEN_CELL_M`` (local ENU, the estimate's frame)."""
 
     def __init__(self) -> None:
-        self._lowest_m: dict[tuple[int, int], float] = {}
-        self._frames: dict[tuple[int, int], int] = {}  # how many frames showed a surface in the cell
+        # per cell: the lowest height seen (m) and how many frames showed a surface in it
+        self._cells: dict[tuple[int, int], tuple[float, int]] = {}
+
+    def _surfaces(self) -> dict[tuple[int, int], float]:
+        """The cells that are surfaces (shown by SEEN_MIN_FRAMES frames) and their lowest height."""
+        return {cell: z for cell, (z, frames) in self._cells.items() if frames >= SEEN_MIN_FRAMES}
 
     def __len__(self) -> int:
-        """The cells that are surfaces (shown by SEEN_MIN_FRAMES frames)."""
-        return sum(n >= SEEN_MIN_FRAMES for n in self._frames.values())
+        return len(self._surfaces())
 
     def add_frame(self, depth_m: np.ndarray, pos_enu_m: np.ndarray, quat_enu_flu: np.ndarray, floor_z_m: float) -> int:
         """Add the surfaces frame ``depth_m`` shows from the camera at ``pos_enu_m`` with attitude
@@ -55,16 +58,15 @@ class SeenSurfaces:
         lowest = np.full(len(cells), np.inf)
         np.minimum.at(lowest, inverse.reshape(-1), world[:, 2])
         for (i, j), z in zip(cells.tolist(), lowest.tolist()):
-            self._frames[(i, j)] = self._frames.get((i, j), 0) + 1
-            if z < self._lowest_m.get((i, j), np.inf):
-                self._lowest_m[(i, j)] = z
+            z_before, frames = self._cells.get((i, j), (np.inf, 0))
+            self._cells[(i, j)] = (min(z, z_before), frames + 1)
         return len(world)
 
     def clearance_m(self, points_xy_m: np.ndarray, below_z_m: float) -> np.ndarray:
         """[N] horizontal distance from each point (N, 2) to the nearest cell centre with a surface
         seen below height ``below_z_m``; inf where there is none."""
         points = np.asarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
-        cells = [cell for cell, z in self._lowest_m.items() if z < below_z_m and self._frames[cell] >= SEEN_MIN_FRAMES]
+        cells = [cell for cell, z in self._surfaces().items() if z < below_z_m]
         if not cells:
             return np.full(len(points), np.inf)
         centres = (np.array(cells, dtype=np.float64) + 0.5) * SEEN_CELL_M

@@ -74,7 +74,7 @@ def test_rendered_frames_show_the_post_and_the_walls_not_the_floor():
     assert post_clearance[0] <= 0.1, post_clearance
     # Nothing between the camera and the post; the floor (seen 2-6 m ahead) is not a surface.
     assert seen.clearance_m(np.array([[1.5, 1.0]]), 3.0)[0] >= 0.9
-    assert all(z > SEEN_FLOOR_BAND_M for z in seen._lowest_m.values())
+    assert all(z > SEEN_FLOOR_BAND_M for z, _ in seen._cells.values())
     # The far wall (x = 8 m) lies beyond SEEN_MAX_DEPTH_M from x <= 1.5: unseen; the side walls are seen.
     assert seen.clearance_m(np.array([[7.9, 2.5]]), 3.0)[0] > 0.5
     assert seen.clearance_m(np.array([[3.0, 0.05]]), 3.0)[0] <= SEEN_CELL_M

@@ -474,16 +474,18 @@ class MissionConfig:
     allow_arm_takeoff: bool = False
     takeoff_alt_m: float = 1.5  # m above home, with allow_arm_takeoff
     max_episodes: int = 0  # 0 = fly every time the pilot selects offboard, until stopped
-    # With allow_arm_takeoff: after the goal (the last one), fly back this far along the path flown
-    # (m, horizontal) before landing, clear of the wall or obstacle the goal lies near: PX4's Hold
-    # and Land drift up to ~1.1 m while descending (docs/px4-sitl.md §8).  0 = land where it stopped.
+    # With allow_arm_takeoff: after the goal (the last one), land at the nearest point of the way
+    # back (from where the vehicle stopped, back along the path flown, at most land_site_search_m
+    # back) whose column down to the floor is land_clearance_m (m, horizontal) clear of the surfaces
+    # the episode's depth frames showed, and whose way there keeps land_way_clearance_m from those
+    # at the height flown (runtime.watchdog.choose_landing_site; PX4's Hold and Land drift up to
+    # ~1.1 m while descending, docs/px4-sitl.md §8).  Where the frames showed no surface at all:
+    # land_retreat_m back along the path, unchecked; likewise always with land_site_search_m = 0.
     land_retreat_m: float = 1.5
-    # ... or, where the depth frames of the episode showed a surface within land_clearance_m (m,
-    # horizontal) of that point below the vehicle, the point of the path nearest to it, within
-    # land_site_search_m of the path's end, that is that clear (the path is free at the height flown,
-    # not below it: runtime.watchdog.choose_landing_site).  land_site_search_m = 0: land_retreat_m, unchecked.
     land_site_search_m: float = 5.0
     land_clearance_m: float = 0.8  # the vehicle's radius 0.2 m + the landing's true drift (PX4 SIH: 0.74 m at most)
+    # the vehicle's radius 0.2 m + PX4's estimate drift and the retreat's tracking error (0.2-0.3 m on PX4 SIH)
+    land_way_clearance_m: float = 0.5
     # With allow_arm_takeoff: then land under the runtime's own control (offboard, descending while
     # it holds its position estimate where the descent began) instead of the autopilot's Land, which
     # holds the position *estimate* and drifted 0.2-1 m with it while descending on PX4 SIH.
@@ -509,9 +511,10 @@ class MissionConfig:
         _within("mission.episode_timeout_s", self.episode_timeout_s, 0.0, 600.0, "s", "an episode that ends")
         _within("mission.max_episodes", self.max_episodes, 0, 100_000, "", "0 = until stopped")
         _require(0.0 < self.takeoff_alt_m <= 50.0, "mission.takeoff_alt_m", self.takeoff_alt_m, "in (0, 50] m above home")
-        _within("mission.land_retreat_m", self.land_retreat_m, 0.0, 10.0, "m", "0 = land where the vehicle stopped")
+        _within("mission.land_retreat_m", self.land_retreat_m, 0.0, 10.0, "m", "0 = where the vehicle stopped")
         _within("mission.land_site_search_m", self.land_site_search_m, 0.0, 20.0, "m", "0 = land_retreat_m back, unchecked")
         _within("mission.land_clearance_m", self.land_clearance_m, 0.2, 3.0, "m", "the vehicle's radius and the landing's drift")
+        _within("mission.land_way_clearance_m", self.land_way_clearance_m, 0.2, 3.0, "m", "the vehicle's radius and the retreat's drift")
         _require(isinstance(self.land_in_offboard, bool), "mission.land_in_offboard", self.land_in_offboard, "true or false")
         _require(
             isinstance(self.max_episodes, int) and self.max_episodes >= 0,

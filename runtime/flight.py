@@ -68,14 +68,16 @@ from .watchdog import (
     TripCause,
     WatchInputs,
     Watchdog,
+    blind_travel_m,
     brake_ended,
     brake_record,
     brake_setpoint,
     choose_landing_site,
     climb_speed_m_s,
+    cut_path,
     descent_time_limit_s,
     hold_setpoint,
-    retreat_path,
+    landing_way,
 )
 
 log = logging.getLogger(__name__)
@@ -232,27 +234,33 @@ class FlightLoop:
         except VehicleError as err:
             log.error("safe stop failed (%s): MAVSDK stops re-sending on close, PX4's offboard-loss failsafe follows", err)
 
-    async def brake_then_hold(self, retreat_m: float = 0.0, land: bool = False) -> dict | None:
+    async def brake_then_hold(self, land_site: bool = False, land: bool = False) -> dict | None:
         """Brake (``runtime.watchdog.brake_setpoint`` at the control rate) until the vehicle has
         stopped (``runtime.watchdog.brake_ended``), then Hold; returns the brake's record (None if
-        the pilot has the vehicle: nothing sent).  With ``retreat_m`` > 0 and the vehicle stopped,
-        :meth:`retreat` to the landing site (``runtime.watchdog.choose_landing_site``, ``retreat_m``
-        back unless the depth frames showed a surface too near it; the record's ``landing_site``;
-        ``mission.land_site_search_m`` = 0: ``retreat_m`` back) and brake again before the Hold
-        (the record's ``retreat``).  With ``land`` and the vehicle stopped, :meth:`descend` instead of the Hold (the record's ``descent``);
-        Hold only if it did not reach the ground.  Raises VehicleError if a command fails."""
+        the pilot has the vehicle: nothing sent).  With ``land_site`` and the vehicle stopped, go
+        to the landing site (``runtime.watchdog.choose_landing_site``: the nearest point of the way
+        back along the path flown clear of what the depth frames showed, reached clear of it; the
+        record's ``landing_site``; ``mission.land_site_search_m`` = 0: ``mission.land_retreat_m``
+        back, unchecked) by :meth:`retreat`, and brake again before the Hold (the record's
+        ``retreat``).  With ``land`` and the vehicle stopped, :meth:`descend` instead of the Hold
+        (the record's ``descent``); Hold only if it did not reach the ground.  Raises VehicleError
+        if a command fails."""
         record = await self._brake()
         if record is None:
             return None
-        if retreat_m > 0.0 and record["ended"] == "stopped":
+        if land_site and record["ended"] == "stopped":
+            mission = self.config.mission
+            flown = np.array(self._flown_enu_m).reshape(-1, 3)
+            way = landing_way(flown, self.vehicle.state().pos_enu_m, max(mission.land_site_search_m, mission.land_retreat_m))
             site = None
-            if (mission := self.config.mission).land_site_search_m > 0.0:
-                site = choose_landing_site(np.array(self._flown_enu_m).reshape(-1, 3), self._seen, float(self.vehicle.state().pos_enu_m[2]),
-                                           retreat_m, mission.land_site_search_m, mission.land_clearance_m)  # fmt: skip
+            if mission.land_site_search_m > 0.0:
+                site = choose_landing_site(way, self._seen, mission.land_clearance_m, mission.land_way_clearance_m, mission.land_retreat_m)
                 (log.info if site.clear else log.warning)("landing site: %s", site)
-                retreat_m = site.back_m
-            if retreat_m > 0.0:
-                retreat = await self.retreat(retreat_m)
+                travel_m = site.travel_m
+            else:
+                travel_m = blind_travel_m(way, mission.land_retreat_m)
+            if travel_m > 0.0:
+                retreat = await self.retreat(cut_path(way, travel_m))
                 if retreat is None or (record := await self._brake()) is None:
                     return None
                 record["retreat"] = retreat
@@ -287,10 +295,10 @@ class FlightLoop:
         log.info("braked: %s", record)
         return record
 
-    async def retreat(self, distance_m: float) -> dict | None:
-        """Fly back along the last episode's path (the estimates its steps flew from) for
-        ``distance_m`` of horizontal length, at the height where it stopped, heading unchanged, at
-        the control rate (``runtime.watchdog.RetreatTracker``: a reference point moving back at
+    async def retreat(self, path_enu_m: np.ndarray) -> dict | None:
+        """Fly ``path_enu_m`` (local ENU m, (N, 3), from where the vehicle is: the way back to the
+        landing site, ``runtime.watchdog.landing_way``), heading unchanged, at the control rate
+        (``runtime.watchdog.RetreatTracker``: a reference point moving along it at
         ``RETREAT_SPEED_M_S``, followed with a P term, and an integral where the estimate's velocity
         is not corrected; slowing down near the end).  Blind but on a path just flown; it ends
         once the vehicle is at the path's end ("arrived"), after twice the time the reference
@@ -299,10 +307,7 @@ class FlightLoop:
         pilot has the vehicle (the gate released, or a mode other than offboard reported during
         it: then nothing more is sent)."""
         start = self.vehicle.state().pos_enu_m.copy()
-        path = retreat_path(np.array(self._flown_enu_m).reshape(-1, 3), distance_m)
-        # At the height it stopped at, not the path's: on PX4 the estimate's height drifts from the
-        # truth, and a path that came down to the goal led back up into the ceiling (2 of 6 flights).
-        path[:, 2] = start[2]
+        path = np.asarray(path_enu_m, dtype=np.float64)
         # Its integral term cancels an autopilot's velocity error, which the runtime already takes out
         # when it corrects the estimate (runtime.tracking.VelocityBias): then it would only wind up on the lag.
         tracker = RetreatTracker(path, integral=not self.config.vehicle.velocity_bias_correction)
@@ -310,7 +315,7 @@ class FlightLoop:
         limit_ns = t0_ns + int((2.0 * tracker.length_m / RETREAT_SPEED_M_S + RETREAT_TIME_MARGIN_S) * _NS_PER_S)
         stale_ns = int(self.config.watchdog.telemetry_stale_ms * _NS_PER_MS)
         ended, t_last_ns = "arrived", t0_ns
-        log.info("retreating %.2f m back along the path flown (%d points)", tracker.length_m, len(path))
+        log.info("retreating %.2f m to the landing site along the way back (%d points)", tracker.length_m, len(path))
         while len(path) > 1:
             state, now_ns = self.vehicle.state(), time.monotonic_ns()
             elapsed_s = (now_ns - t0_ns) / _NS_PER_S
@@ -458,8 +463,8 @@ class FlightLoop:
     async def fly(self, goal_enu_m: np.ndarray, timeout_s: float, landing_next: bool = False) -> EpisodeResult:
         """Fly the policy from now (offboard active) to ``goal_enu_m`` (local ENU, m).  With
         ``landing_next`` (a dry run's last goal), a goal reached is followed by the brake, a retreat
-        back along the path flown to the landing site (:meth:`retreat`: ``mission.land_retreat_m``
-        back, or the nearest point clear of what the depth frames showed), the brake again,
+        back along the path flown to the landing site (:meth:`retreat`: the nearest point of the
+        way back clear of what the depth frames showed, reached clear of it), the brake again,
         then the landing in offboard (:meth:`descend`, ``mission.land_in_offboard``) or Hold."""
         self.set_goal(goal_enu_m)
         settle_heap()
@@ -518,7 +523,7 @@ class FlightLoop:
         try:
             landing = episode.outcome == "success" and episode.landing_next
             mission = self.config.mission
-            episode.brake = await self.brake_then_hold(mission.land_retreat_m if landing else 0.0, landing and mission.land_in_offboard)
+            episode.brake = await self.brake_then_hold(landing, landing and mission.land_in_offboard)
         except VehicleError as err:
             log.error("hover/Hold at the end of the episode failed: %s", err)
             episode.abort_reason = f"end of episode hover/Hold failed: {err}"

@@ -234,9 +234,15 @@ RETREAT_CLIMB_MAX_M_S = 0.3
 
 def retreat_path(flown_enu_m: np.ndarray, distance_m: float) -> np.ndarray:
     """The flown path (positions in order, world ENU m, shape (N, 3)) walked backwards from its end
-    for ``distance_m`` of horizontal length: newest point first, the last one interpolated where
-    the length is reached (the whole path reversed if it is shorter)."""
-    points = np.asarray(flown_enu_m, dtype=np.float64)[::-1]
+    for ``distance_m`` of horizontal length: newest point first (:func:`cut_path`)."""
+    return cut_path(np.asarray(flown_enu_m, dtype=np.float64)[::-1], distance_m)
+
+
+def cut_path(path_enu_m: np.ndarray, distance_m: float) -> np.ndarray:
+    """The polyline ``path_enu_m`` (N, 3) walked from its first point for ``distance_m`` of
+    horizontal length, the last point interpolated where the length is reached (all of it if it is
+    shorter; its first point alone for a length <= 0)."""
+    points = np.asarray(path_enu_m, dtype=np.float64)
     if len(points) < 2 or distance_m <= 0.0:
         return points[:1].copy()
     walked_m = arc_lengths_m(points)
@@ -247,7 +253,7 @@ def retreat_path(flown_enu_m: np.ndarray, distance_m: float) -> np.ndarray:
 
 
 class RetreatTracker:
-    """Follows a reference point that moves along ``path`` (from :func:`retreat_path`) at
+    """Follows a reference point that moves along ``path`` (from :func:`landing_way`) at
     ``RETREAT_SPEED_M_S``: velocity = the reference's own + a P term on the horizontal distance to
     it (limited to ``RETREAT_MAX_SPEED_M_S``, and near the path's end to what stops there at
     ``RETREAT_APPROACH_DECEL_M_S2``), vertical speed toward its height.
@@ -323,23 +329,51 @@ def path_point(path: np.ndarray, at_m: np.ndarray, along_m: float) -> np.ndarray
     return path[k - 1] + min(share, 1.0) * (path[k] - path[k - 1])
 
 
-# The dry run's landing site (:func:`choose_landing_site`): a point of the path flown whose column
-# down to the floor is clear of what the episode's depth frames showed (runtime.camera.surfaces),
-# at least mission.land_clearance_m: the vehicle's radius plus the landing's drift (0.58 m of true
-# drift at p90 and 0.74 m at most on 58 PX4 SIH landings).  A camera that showed nothing leaves
-# every point clear: the retreat of mission.land_retreat_m.
-LANDING_SITE_STEP_M = 0.1  # the candidates' spacing along the path
+# The dry run's landing site (:func:`choose_landing_site`): a point of its way back -- from where
+# the vehicle stopped to the path flown's end, then back along the path -- whose column down to the
+# floor is clear of what the episode's depth frames showed (runtime.camera.surfaces) by at least
+# mission.land_clearance_m (the vehicle's radius plus the landing's drift: 0.58 m of true drift at
+# p90 and 0.74 m at most on 58 PX4 SIH landings), reached by a way that keeps mission.land_way_clearance_m
+# from the surfaces seen at the height it flies.  The nearest such point: every metre flown back
+# blind on PX4's estimate is a chance to touch what the path passed by (two retreats at level 15).
+# A camera that showed nothing leaves nothing to choose by: the retreat of mission.land_retreat_m.
+LANDING_SITE_STEP_M = 0.1  # the candidates' spacing along the way
 LANDING_HEIGHT_MARGIN_M = 0.3  # surfaces seen up to this far above the landing height are in its way
+LANDING_WAY_HEIGHT_MARGIN_M = 0.3  # surfaces spanning the flight height +- this are in the way there
+
+
+def landing_way(flown_enu_m: np.ndarray, stop_enu_m: np.ndarray, back_m: float) -> np.ndarray:
+    """The way back to a landing site (local ENU m, (N, 3), at the height where the vehicle
+    stopped): from ``stop_enu_m`` to the end of the path flown (``flown_enu_m``, positions in
+    order), then back along it for ``back_m`` of horizontal length (:func:`retreat_path`)."""
+    stop = np.asarray(stop_enu_m, dtype=np.float64).reshape(1, 3)
+    flown = np.asarray(flown_enu_m, dtype=np.float64).reshape(-1, 3)
+    way = stop if len(flown) == 0 else np.vstack([stop, retreat_path(flown, back_m)])
+    # At the height it stopped at, not the path's: on PX4 the estimate's height drifts from the
+    # truth, and a path that came down to the goal led back up into the ceiling (2 of 6 flights).
+    way[:, 2] = stop[0, 2]
+    return way
+
+
+def blind_travel_m(way_enu_m: np.ndarray, back_m: float) -> float:
+    """How far along ``way_enu_m`` (:func:`landing_way`) lies the point ``back_m`` back along the
+    path flown (0: where the vehicle stopped): a site chosen by nothing seen."""
+    at_m = arc_lengths_m(np.asarray(way_enu_m, dtype=np.float64).reshape(-1, 3))
+    if back_m <= 0.0 or len(at_m) < 2:
+        return 0.0
+    return round(float(min(at_m[1] + back_m, at_m[-1])), 3)
 
 
 @dataclass(frozen=True)
 class LandingSite:
-    """Where to land: ``back_m`` of horizontal length back along the path flown; its clearance to
-    the surfaces seen (m; None: none seen), whether that meets the clearance asked, how many cells
-    of the grid held a surface."""
+    """Where to land: ``travel_m`` of horizontal length along the way back (:func:`landing_way`;
+    0: where the vehicle stopped); its clearance to the surfaces seen below it (m; None: none seen)
+    and the least clearance on the way there at the flight height (m; None: none seen), whether
+    both meet what was asked, how many cells of the grid held a surface."""
 
-    back_m: float
+    travel_m: float
     clearance_m: float | None
+    way_clearance_m: float | None
     clear: bool
     surface_cells: int
 
@@ -347,32 +381,32 @@ class LandingSite:
         return asdict(self)
 
 
-def choose_landing_site(
-    flown_enu_m: np.ndarray,
-    seen: SeenSurfaces,
-    height_z_m: float,
-    preferred_back_m: float,
-    search_back_m: float,
-    clearance_m: float,
-) -> LandingSite:
-    """The landing site on the path flown (positions in order, local ENU m, (N, 3)), for a vehicle
-    now at height ``height_z_m``: among the points every ``LANDING_SITE_STEP_M`` up to
-    ``search_back_m`` back from its end (the whole path if shorter), the one nearest to
-    ``preferred_back_m`` back whose clearance is at least ``clearance_m``; else the clearest
-    (nearest to ``preferred_back_m`` among equals)."""
-    path = retreat_path(np.asarray(flown_enu_m, dtype=np.float64).reshape(-1, 3), max(search_back_m, preferred_back_m))
-    at_m = arc_lengths_m(path)
-    backs_m = np.arange(0.0, at_m[-1] + 1e-9, LANDING_SITE_STEP_M)
-    points = np.array([path_point(path, at_m, b)[:2] for b in backs_m])
-    clearances = seen.clearance_m(points, height_z_m + LANDING_HEIGHT_MARGIN_M)
-    order = np.argsort(np.abs(backs_m - min(preferred_back_m, at_m[-1])), kind="stable")
-    ok = clearances[order] >= clearance_m
-    best = order[int(np.argmax(ok))] if ok.any() else order[int(np.argmax(clearances[order]))]
-    clearance = float(clearances[best])
+def choose_landing_site(way_enu_m: np.ndarray, seen: SeenSurfaces, clearance_m: float, way_clearance_m: float, blind_back_m: float) -> LandingSite:
+    """The landing site on ``way_enu_m`` (from :func:`landing_way`, its first point where the
+    vehicle stopped): of the points every ``LANDING_SITE_STEP_M`` along it, the nearest whose
+    clearance to the surfaces seen below it is at least ``clearance_m`` and whose way there keeps
+    at least ``way_clearance_m`` (or what it had where it stopped, if less) from the surfaces seen
+    at the flight height; else, of those reached so, the clearest.  ``seen`` holding no surface:
+    ``blind_back_m`` back along the path flown (nothing to choose by)."""
+    way = np.asarray(way_enu_m, dtype=np.float64).reshape(-1, 3)
+    at_m = arc_lengths_m(way)
+    height_z_m = float(way[0, 2])
+    if len(seen) == 0:
+        return LandingSite(blind_travel_m(way, blind_back_m), None, None, True, 0)
+    travels_m = np.arange(0.0, at_m[-1] + 1e-9, LANDING_SITE_STEP_M)
+    points = np.array([path_point(way, at_m, t)[:2] for t in travels_m])
+    below = seen.clearance_m(points, height_z_m + LANDING_HEIGHT_MARGIN_M)
+    beside = seen.clearance_m(points, height_z_m + LANDING_WAY_HEIGHT_MARGIN_M, height_z_m - LANDING_WAY_HEIGHT_MARGIN_M)
+    way_least = np.minimum.accumulate(beside)
+    reached = beside >= min(way_clearance_m, beside[0])
+    reached = np.logical_and.accumulate(reached)  # a point is reached if every point before it was
+    ok = reached & (below >= clearance_m)
+    best = int(np.argmax(ok)) if ok.any() else int(np.argmax(np.where(reached, below, -np.inf)))
     return LandingSite(
-        back_m=round(float(backs_m[best]), 3),
-        clearance_m=round(clearance, 3) if np.isfinite(clearance) else None,
-        clear=bool(clearances[best] >= clearance_m),
+        travel_m=round(float(travels_m[best]), 3),
+        clearance_m=round(float(below[best]), 3) if np.isfinite(below[best]) else None,
+        way_clearance_m=round(float(way_least[best]), 3) if np.isfinite(way_least[best]) else None,
+        clear=bool(ok[best]),
         surface_cells=len(seen),
     )
 

@@ -18,7 +18,6 @@ import statistics
 import sys
 from pathlib import Path
 
-from runtime.config import MissionConfig
 from training.stats import wilson_interval
 
 
@@ -104,9 +103,8 @@ def main(path: str) -> int:
     print()
     print("| level | contacts: take-off | in flight before the goal | after the goal, offboard (brake, retreat, landing) | "
           "after the goal, PX4's Hold/Land | retreats (ended: count) | landings in offboard (ended: count) | "
-          "landing sites: chosen / moved off the default mission.land_retreat_m / none clear |")
+          "landing sites: chosen / where it stopped / travel median, max (m) / none clear |")
     print("|---|---|---|---|---|---|---|---|")
-    default_retreat_m = MissionConfig().land_retreat_m  # the campaigns fly the default
     for level, rs in sorted(by_level.items()):
         phases = collections.Counter(contact_phase(r) for r in rs)
         retreats = collections.Counter(((r.get("brake") or {}).get("retreat") or {}).get("ended") for r in rs)
@@ -115,10 +113,12 @@ def main(path: str) -> int:
         descents.pop(None, None)
         sites = [(r.get("brake") or {}).get("landing_site") for r in rs]
         sites = [s for s in sites if s is not None]
-        moved = sum(s["back_m"] != default_retreat_m for s in sites)
+        # (sites recorded before the way back was checked have a back_m, no travel_m: "-")
+        travels = [s["travel_m"] for s in sites if "travel_m" in s]
+        travel = f"{sum(t == 0.0 for t in travels)} / {_median(travels):.2f}, {max(travels):.2f}" if travels else "- / -"
         print(f"| {level} | {phases['take-off']} | {phases['flight']} | {phases['after goal, offboard']} | "
               f"{phases['after goal, landing'] + phases['after goal']} | {dict(retreats) or '-'} | {dict(descents) or '-'} | "
-              f"{len(sites)} / {moved} / {sum(not s['clear'] for s in sites)} |")
+              f"{len(sites)} / {travel} / {sum(not s['clear'] for s in sites)} |")
     return 0
 
 

@@ -2,8 +2,10 @@
 frame: where a dry run may land (``runtime.watchdog.choose_landing_site``).  The path flown is
 free at the height it was flown, not below it: on PX4 SIH a flight that passed over a 2.9 m post at
 4.3 m retreated 1.5 m along its path, stopped 0.38 m from the post and touched it while landing
-(level 6, seed 7003).  Each step's frame adds the surfaces it shows (walls, obstacles; not the
-floor) to a horizontal grid.
+(level 6, seed 7003).  And the way back to a site passes what the path passed: at level 15 two
+retreats touched a thin post or a slab's edge beside the path (0.2-0.3 m of estimate drift and
+tracking error on a path that had cleared them by 0.4-0.5 m).  Each step's frame adds the surfaces
+it shows (walls, obstacles; not the floor) to a horizontal grid, with the heights they span.
 """
 
 from __future__ import annotations
@@ -30,16 +32,17 @@ SEEN_MIN_FRAMES = 3
 
 
 class SeenSurfaces:
-    """Surfaces (not the floor) the depth frames of an episode showed, as the lowest height seen
-    in each cell of a horizontal grid of ``SEEN_CELL_M`` (local ENU, the estimate's frame)."""
+    """Surfaces (not the floor) the depth frames of an episode showed, as the lowest and highest
+    heights seen in each cell of a horizontal grid of ``SEEN_CELL_M`` (local ENU, the estimate's
+    frame)."""
 
     def __init__(self) -> None:
-        # per cell: the lowest height seen (m) and how many frames showed a surface in it
-        self._cells: dict[tuple[int, int], tuple[float, int]] = {}
+        # per cell: the lowest and highest height seen (m) and how many frames showed a surface in it
+        self._cells: dict[tuple[int, int], tuple[float, float, int]] = {}
 
-    def _surfaces(self) -> dict[tuple[int, int], float]:
-        """The cells that are surfaces (shown by SEEN_MIN_FRAMES frames) and their lowest height."""
-        return {cell: z for cell, (z, frames) in self._cells.items() if frames >= SEEN_MIN_FRAMES}
+    def _surfaces(self) -> dict[tuple[int, int], tuple[float, float]]:
+        """The cells that are surfaces (shown by SEEN_MIN_FRAMES frames): their lowest and highest height."""
+        return {cell: (low, high) for cell, (low, high, frames) in self._cells.items() if frames >= SEEN_MIN_FRAMES}
 
     def __len__(self) -> int:
         return len(self._surfaces())
@@ -55,18 +58,20 @@ class SeenSurfaces:
         if len(world) == 0:
             return 0
         cells, inverse = np.unique(np.floor(world[:, :2] / SEEN_CELL_M).astype(np.int64), axis=0, return_inverse=True)
-        lowest = np.full(len(cells), np.inf)
+        lowest, highest = np.full(len(cells), np.inf), np.full(len(cells), -np.inf)
         np.minimum.at(lowest, inverse.reshape(-1), world[:, 2])
-        for (i, j), z in zip(cells.tolist(), lowest.tolist()):
-            z_before, frames = self._cells.get((i, j), (np.inf, 0))
-            self._cells[(i, j)] = (min(z, z_before), frames + 1)
+        np.maximum.at(highest, inverse.reshape(-1), world[:, 2])
+        for (i, j), low, high in zip(cells.tolist(), lowest.tolist(), highest.tolist()):
+            low_before, high_before, frames = self._cells.get((i, j), (np.inf, -np.inf, 0))
+            self._cells[(i, j)] = (min(low, low_before), max(high, high_before), frames + 1)
         return len(world)
 
-    def clearance_m(self, points_xy_m: np.ndarray, below_z_m: float) -> np.ndarray:
+    def clearance_m(self, points_xy_m: np.ndarray, below_z_m: float, above_z_m: float = -np.inf) -> np.ndarray:
         """[N] horizontal distance from each point (N, 2) to the nearest cell centre with a surface
-        seen below height ``below_z_m``; inf where there is none."""
+        seen below height ``below_z_m`` (and, with ``above_z_m``, above that height: a surface
+        spanning a height band); inf where there is none."""
         points = np.asarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
-        cells = [cell for cell, z in self._surfaces().items() if z < below_z_m]
+        cells = [cell for cell, (low, high) in self._surfaces().items() if low < below_z_m and high > above_z_m]
         if not cells:
             return np.full(len(points), np.inf)
         centres = (np.array(cells, dtype=np.float64) + 0.5) * SEEN_CELL_M

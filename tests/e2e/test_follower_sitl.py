@@ -62,7 +62,7 @@ def test_follower_flies_the_stand_in_autopilot_to_the_goal(goal_seeker, tmp_path
     assert code == 0, f"exit {code}; summary {summary}; stderr:\n{stderr[-3000:]}"
     assert summary["outcome"] == "success" and summary["watchdog_trips"] == []
     assert summary["closest_distance_m"] <= 1.5 and summary["path_m"] > 5.0
-    # Then back along its path before the landing (mission.land_retreat_m): it lands clear of the goal's wall.
+    # Then back along its path before the landing (the landing site): it lands clear of the goal's wall.
     assert summary["brake"]["retreat"]["ended"] == "arrived" and summary["final_distance_m"] > summary["closest_distance_m"] + 1.0
     truth = summary["ground_truth"]
     assert truth["contact"] is None and truth["geofence"] is None and truth["timeout_t_s"] is None

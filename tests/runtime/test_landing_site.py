@@ -1,8 +1,9 @@
 """Where the dry run lands (runtime.camera.surfaces, runtime.watchdog.choose_landing_site): the
 path flown is free at the height flown, not below it (on PX4 SIH a flight that passed over a post
-retreated onto it and touched it while landing).  The contract's camera against the sim's, the
-surfaces seen in rendered frames, the choice of the site, then the flight loop landing clear of a
-post under its path."""
+retreated onto it and touched it while landing), and the way back passes what the path passed (two
+retreats at level 15 touched a thin post or a slab's edge beside the path).  The contract's camera
+against the sim's, the surfaces seen in rendered frames, the choice of the site, then the flight
+loop landing clear of the wall behind its goal and of a post beside its path."""
 
 import asyncio
 import math
@@ -19,31 +20,35 @@ from runtime.contract.camera import depth_points_flu, focal_length_px
 from runtime.contract.constants import CAMERA_HFOV_RAD
 from runtime.contract.frames import quat_from_euler
 from runtime.camera.surfaces import SEEN_CELL_M, SEEN_FLOOR_BAND_M, SEEN_MAX_DEPTH_M, SEEN_MIN_FRAMES, SeenSurfaces
-from runtime.watchdog import choose_landing_site
+from runtime.watchdog import choose_landing_site, cut_path, landing_way
 from sim.camera import CameraModel
 from sim.render import render
 from sim.world import WorldBatch
 from tests.runtime.test_flight_loop import START
 from tests.runtime.test_retreat import LandingVehicle, _fly_and_retreat
 
-POST_XY_M = np.array([2.8, 1.0])  # under the goal seeker's path, 1.5 m back from where it stops
+POST_XY_M = np.array([2.8, 1.0])  # under the goal seeker's path
 POST_TOP_M = 1.0  # 0.5 m below the height it flies at (START)
+TALL_M = 2.5  # a post that reaches above the flight height
 CAMERA = CameraModel()
 
 
-def _room(post: bool) -> WorldBatch:
-    """An 8 x 5 x 3 m room; with ``post`` a 0.1 m post from the floor to POST_TOP_M at POST_XY_M."""
-    half_m = POST_TOP_M / 2.0
+def _room(*posts: tuple[float, float, float]) -> WorldBatch:
+    """An 8 x 5 x 3 m room with 0.1 m posts from the floor, each (x, y, top) in metres."""
+    boxes = [(x, y, top / 2.0) for x, y, top in posts] or [(0.0, 0.0, 0.0)]
     return WorldBatch(
         room_size_m=torch.tensor([[8.0, 5.0, 3.0]]),
-        box_center_m=torch.tensor([[[*POST_XY_M, half_m]]], dtype=torch.float32),
-        box_half_extent_m=torch.tensor([[[0.05, 0.05, half_m]]]),
-        box_yaw_rad=torch.zeros(1, 1),
-        box_valid=torch.tensor([[post]]),
+        box_center_m=torch.tensor([boxes], dtype=torch.float32),
+        box_half_extent_m=torch.tensor([[[0.05, 0.05, z] for _, _, z in boxes]]),
+        box_yaw_rad=torch.zeros(1, len(boxes)),
+        box_valid=torch.tensor([[bool(posts)] * len(boxes)]),
         start_m=torch.tensor([START.tolist()], dtype=torch.float32),
         goal_m=torch.tensor([[5.0, 1.0, 1.5]]),
         texture_seed=torch.tensor([7]),
     )
+
+
+LOW_POST = (*POST_XY_M, POST_TOP_M)
 
 
 def _depth(world: WorldBatch, pos_enu_m: np.ndarray, yaw_rad: float) -> np.ndarray:
@@ -68,13 +73,15 @@ def test_the_contracts_camera_is_the_sims():
 def test_rendered_frames_show_the_post_and_the_walls_not_the_floor():
     seen = SeenSurfaces()
     for x in np.arange(0.5, 1.51, 0.1):  # flying +x at 1.5 m toward the post, 11 frames
-        assert seen.add_frame(_depth(_room(True), np.array([x, 1.0, 1.5]), 0.0), np.array([x, 1.0, 1.5]), quat_from_euler(0.0, 0.0, 0.0), 0.0) > 0
+        assert seen.add_frame(_depth(_room(LOW_POST), np.array([x, 1.0, 1.5]), 0.0), np.array([x, 1.0, 1.5]), quat_from_euler(0.0, 0.0, 0.0), 0.0) > 0
     # The post's cells hold it, the lowest point seen on it near its foot's visible part (above the floor band)
     post_clearance = seen.clearance_m(POST_XY_M[None], POST_TOP_M + 0.1)
     assert post_clearance[0] <= 0.1, post_clearance
     # Nothing between the camera and the post; the floor (seen 2-6 m ahead) is not a surface.
     assert seen.clearance_m(np.array([[1.5, 1.0]]), 3.0)[0] >= 0.9
-    assert all(z > SEEN_FLOOR_BAND_M for z, _ in seen._cells.values())
+    assert all(low > SEEN_FLOOR_BAND_M for low, _, _ in seen._cells.values())
+    # ... and the heights it spans: below a flight at 1.5 m, not beside it.
+    assert seen.clearance_m(POST_XY_M[None], 1.8, 1.2)[0] > 0.5
     # The far wall (x = 8 m) lies beyond SEEN_MAX_DEPTH_M from x <= 1.5: unseen; the side walls are seen.
     assert seen.clearance_m(np.array([[7.9, 2.5]]), 3.0)[0] > 0.5
     assert seen.clearance_m(np.array([[3.0, 0.05]]), 3.0)[0] <= SEEN_CELL_M
@@ -84,14 +91,14 @@ def test_rendered_frames_show_the_post_and_the_walls_not_the_floor():
 
 def test_a_surface_counts_once_frames_show_it_and_the_floor_never_through_an_estimate_off_by_degrees():
     pose = np.array([1.0, 1.0, 1.5])
-    depth = _depth(_room(True), pose, 0.0)
+    depth = _depth(_room(LOW_POST), pose, 0.0)
     seen = SeenSurfaces()
     for n in range(1, SEEN_MIN_FRAMES + 1):
         seen.add_frame(depth, pose, quat_from_euler(0.0, 0.0, 0.0), 0.0)
         assert (seen.clearance_m(POST_XY_M[None], 3.0)[0] <= 0.1) == (n >= SEEN_MIN_FRAMES), n
     # The floor, 1.5-5 m ahead, seen through an estimate 0.15 m low and pitched or rolled 3 degrees
     # off (PX4 SIH's floor points lay within 0.2 m + 0.1 x range of it): not a surface.
-    room = _room(False)
+    room = _room()
     seen = SeenSurfaces()
     for roll, pitch in ((0.0, 0.05), (0.0, -0.05), (0.05, 0.0), (-0.05, 0.0)):
         for _ in range(SEEN_MIN_FRAMES):
@@ -100,38 +107,64 @@ def test_a_surface_counts_once_frames_show_it_and_the_floor_never_through_an_est
     assert np.all(seen.clearance_m(floor_ahead, 1.8) > 0.5)  # (the ceiling, at 3 m, is a surface: above it)
 
 
-def _seen_along(path: np.ndarray, post: bool) -> SeenSurfaces:
+def _seen_along(path: np.ndarray, room: WorldBatch) -> SeenSurfaces:
     seen = SeenSurfaces()
     for p in path:
-        seen.add_frame(_depth(_room(post), p, 0.0), p, quat_from_euler(0.0, 0.0, 0.0), 0.0)
+        seen.add_frame(_depth(room, p, 0.0), p, quat_from_euler(0.0, 0.0, 0.0), 0.0)
     return seen
 
 
-def test_the_site_is_the_preferred_one_unless_a_surface_seen_is_too_near():
-    path = np.array([[x, 1.0, 1.5] for x in np.arange(1.0, 4.31, 0.13)])  # +x at 2 m/s, 15 Hz
-    # Nothing near: land_retreat_m back.
-    site = choose_landing_site(path, _seen_along(path, post=False), 1.5, 1.5, 5.0, 0.8)
-    assert site.clear and site.back_m == pytest.approx(1.5) and site.clearance_m > 0.8
-    # The post under the path 1.5 m back: the nearest point to it that is 0.8 m clear.
-    seen = _seen_along(path, post=True)
-    site = choose_landing_site(path, seen, 1.5, 1.5, 5.0, 0.8)
-    end = path[-1, 0]
-    assert site.clear and site.clearance_m >= 0.8 and abs(end - site.back_m - POST_XY_M[0]) >= 0.8 - SEEN_CELL_M
-    assert abs(site.back_m - 1.5) <= 0.9  # the nearest clear one: 0.8 m either side of the post, and a cell
-    # Surfaces seen only above the vehicle (the ceiling at 3 m) are not in the way down.
-    ahead = np.array([[end + 0.5, 1.0]])
-    assert seen.clearance_m(ahead, 3.5)[0] <= 2 * SEEN_CELL_M and seen.clearance_m(ahead, 1.8)[0] > 0.8
-    # Nothing clear within the search: the clearest point, and it says it is not clear.
-    site = choose_landing_site(path, seen, 1.5, 1.5, 5.0, 3.0)
-    clearest = max(seen.clearance_m(np.array([[end - b, 1.0]]), 1.8)[0] for b in np.arange(0.0, end - 1.0 + 1e-9, 0.1))
-    assert not site.clear and site.clearance_m == pytest.approx(clearest, abs=1e-3)
-    # A camera that showed nothing: land_retreat_m back, with no clearance to report.
-    assert choose_landing_site(path, SeenSurfaces(), 1.5, 1.5, 5.0, 0.8).record() == {
-        "back_m": 1.5, "clearance_m": None, "clear": True, "surface_cells": 0}  # fmt: skip
+def _site(room: WorldBatch, end_x_m: float, overshoot_m: float = 0.4, way_clearance_m: float = 0.5):
+    """The site chosen after flying +x at 1.5 m along y = 1 m (2 m/s, 15 Hz) from x = 1 m to
+    ``end_x_m``, stopped ``overshoot_m`` beyond: (the site, the way back, its point)."""
+    path = np.array([[x, 1.0, 1.5] for x in np.arange(1.0, end_x_m + 1e-9, 0.13)])
+    way = landing_way(path, path[-1] + [overshoot_m, 0.0, 0.0], 5.0)
+    site = choose_landing_site(way, _seen_along(path, room), 0.8, way_clearance_m, 1.5)
+    return site, way, cut_path(way, site.travel_m)[-1]
+
+
+def test_the_site_is_where_it_stopped_when_nothing_seen_is_near():
+    site, way, point = _site(_room(LOW_POST), 4.3)  # the post flown over lies 1.5 m back
+    assert site.clear and site.travel_m == 0.0 and site.clearance_m > 0.8 and site.way_clearance_m > 0.8
+    np.testing.assert_allclose(point, way[0])
+
+
+def test_the_site_is_the_nearest_point_of_the_way_back_clear_of_the_wall_behind_the_goal():
+    site, _, point = _site(_room(), 6.9)  # stopped 0.7 m from the far wall (x = 8)
+    assert site.clear and 0.0 < site.travel_m <= 0.4 and site.clearance_m >= 0.8
+    assert 8.0 - point[0] >= 0.8 - SEEN_CELL_M  # the wall's cells hold what was seen up to x = 8 m
+
+
+def test_the_way_back_keeps_its_clearance_from_a_post_beside_the_path():
+    # A tall post 0.6 m beside the path, 0.2 m before its end: a site clear of it and of the wall
+    # lies beyond it, and the way there passes it 0.6 m off: taken.
+    site, way, point = _site(_room((6.7, 1.6, TALL_M)), 6.9)
+    assert site.clear and site.way_clearance_m >= 0.5 and np.hypot(point[0] - 6.7, point[1] - 1.6) >= 0.8 - SEEN_CELL_M
+    assert point[0] < 6.7 and 8.0 - point[0] >= 0.8
+    # 0.3 m beside it: the way past it is not taken; the clearest point before it, said not clear.
+    site, _, point = _site(_room((6.7, 1.3, TALL_M)), 6.9)
+    assert not site.clear and point[0] > 6.7 and site.clearance_m < 0.8 and site.way_clearance_m >= 0.5
+    # (asked for less clearance on the way, it goes past the post to the clear site)
+    site, _, point = _site(_room((6.7, 1.3, TALL_M)), 6.9, way_clearance_m=0.2)
+    assert site.clear and point[0] < 6.7 and site.way_clearance_m < 0.5
+    # A post of the same place 0.5 m below the flight height is flown over, not passed by: taken.
+    site, _, point = _site(_room((6.7, 1.3, POST_TOP_M)), 6.9)
+    assert site.way_clearance_m > 0.5 and (not site.clear or np.hypot(point[0] - 6.7, point[1] - 1.3) >= 0.8 - SEEN_CELL_M)
+
+
+def test_a_camera_that_showed_nothing_lands_land_retreat_m_back_unchecked():
+    path = np.array([[x, 1.0, 1.5] for x in np.arange(1.0, 4.31, 0.13)])
+    way = landing_way(path, path[-1] + [0.4, 0.0, 0.0], 5.0)
+    site = choose_landing_site(way, SeenSurfaces(), 0.8, 0.5, 1.5)
+    assert site.record() == {"travel_m": pytest.approx(1.9), "clearance_m": None, "way_clearance_m": None, "clear": True, "surface_cells": 0}
+    assert choose_landing_site(way, SeenSurfaces(), 0.8, 0.5, 0.0).travel_m == 0.0  # land_retreat_m = 0: where it stopped
 
 
 def test_the_site_search_and_clearance_are_mission_keys_with_bounds():
     assert MissionConfig().land_site_search_m == 5.0 and MissionConfig().land_clearance_m == 0.8
+    assert MissionConfig().land_way_clearance_m == 0.5
+    with pytest.raises(ConfigError, match="mission.land_way_clearance_m"):
+        MissionConfig(land_way_clearance_m=0.0)
     with pytest.raises(ConfigError, match="mission.land_site_search_m"):
         MissionConfig(land_site_search_m=-1.0)
     with pytest.raises(ConfigError, match="mission.land_clearance_m"):
@@ -161,18 +194,21 @@ class RenderingCamera:
 
 
 @pytest.mark.flight
-def test_the_dry_run_lands_clear_of_a_post_it_flew_over(goal_seeker):
-    goal = START + np.array([4.0, 0.0, 0.0])
+def test_the_dry_run_lands_clear_of_the_wall_and_of_a_post_beside_its_way_back(goal_seeker):
+    goal = START + np.array([6.0, 0.0, 0.0])  # 1 m from the far wall (x = 8)
+    post = (6.5, 1.6, TALL_M)  # 0.6 m beside the path, 0.5 m before the goal
     vehicle = LandingVehicle()
-    result, landed, _ = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, goal, 1.5, RenderingCamera(_room(True), vehicle), land_in_offboard=True))
+    result, landed, _ = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, goal, 1.5, RenderingCamera(_room(post), vehicle),
+                                                     land_in_offboard=True, site_search_m=5.0))  # fmt: skip
     assert result.outcome == "success", result
-    assert "landing_site" in result.brake, result.brake
     site, retreat, descent = result.brake["landing_site"], result.brake["retreat"], result.brake["descent"]
-    assert site["clear"] and site["clearance_m"] >= 0.8 and site["back_m"] != 1.5, result.brake
+    assert site["clear"] and site["clearance_m"] >= 0.8 and site["way_clearance_m"] >= 0.5 and site["travel_m"] > 0.0, result.brake
     assert retreat["ended"] == "arrived" and descent["ended"] == "disarmed", result.brake
-    assert np.linalg.norm(landed[:2] - POST_XY_M) >= 0.8 - 0.15, landed  # the retreat arrives within 0.15 m
-    # Without the post, the same flight lands land_retreat_m back.
+    # The retreat arrives within 0.15 m; the cells hold what was seen up to a cell's side off.
+    assert 8.0 - landed[0] >= 0.8 - 0.15 - SEEN_CELL_M and np.hypot(landed[0] - post[0], landed[1] - post[1]) >= 0.8 - 0.15 - SEEN_CELL_M, landed
+    # In the open (the post flown over lies behind it), the same flight lands where it stopped.
     vehicle = LandingVehicle()
-    result, landed, _ = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, goal, 1.5, RenderingCamera(_room(False), vehicle), land_in_offboard=True))
-    assert result.brake["landing_site"]["back_m"] == 1.5 and result.brake["landing_site"]["clear"], result.brake
-    assert abs(np.linalg.norm(landed[:2] - POST_XY_M)) < 0.5, landed
+    result, landed, _ = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, START + np.array([4.0, 0.0, 0.0]), 1.5,
+                                                     RenderingCamera(_room(LOW_POST), vehicle), land_in_offboard=True, site_search_m=5.0))  # fmt: skip
+    assert result.brake["landing_site"]["travel_m"] == 0.0 and result.brake["landing_site"]["clear"], result.brake
+    assert "retreat" not in result.brake and result.brake["descent"]["ended"] == "disarmed", result.brake

@@ -1,7 +1,9 @@
 """The dry run's retreat and landing (issue 27): after the goal, brake, fly back along the path
-flown for ``mission.land_retreat_m``, brake again, then land in offboard (``mission.land_in_offboard``)
-or Hold — on PX4 the Hold and Land drift up to ~1.1 m, and goals lie 0.5-1 m from a wall.  The path
-geometry, then the flight loop on a vehicle that lags like PX4."""
+flown to the landing site, brake again, then land in offboard (``mission.land_in_offboard``) or
+Hold — on PX4 the Hold and Land drift up to ~1.1 m, and goals lie 0.5-1 m from a wall.  The path
+geometry, then the flight loop on a vehicle that lags like PX4, here with the site unchecked
+(``mission.land_site_search_m`` = 0: ``mission.land_retreat_m`` back; the site's choice is
+tests/runtime/test_landing_site.py)."""
 
 import asyncio
 import time
@@ -14,7 +16,7 @@ from runtime.model import PolicyModel
 from runtime.contract import CONTROL_PERIOD_S
 from runtime.flight import RETREAT_TIME_MARGIN_S, FlightLoop
 from runtime.state import VehicleState
-from runtime.watchdog import LAND_DESCENT_M_S, LAND_DISARM_WAIT_S, LAND_HOLD_GAIN_PER_S, LAND_HOLD_MAX_M_S, hold_setpoint, RETREAT_APPROACH_DECEL_M_S2, RETREAT_MAX_SPEED_M_S, RETREAT_SPEED_M_S, RetreatTracker, retreat_path
+from runtime.watchdog import LAND_DESCENT_M_S, LAND_DISARM_WAIT_S, LAND_HOLD_GAIN_PER_S, LAND_HOLD_MAX_M_S, hold_setpoint, RETREAT_APPROACH_DECEL_M_S2, RETREAT_MAX_SPEED_M_S, RETREAT_SPEED_M_S, RetreatTracker, cut_path, landing_way, retreat_path
 from tests.runtime.test_brake import BRAKE_TAU_S, LaggingVehicle
 from tests.runtime.test_flight_loop import START, FakeCamera
 
@@ -28,6 +30,15 @@ def test_the_path_is_walked_back_from_its_end_for_the_distance_asked():
     # Points where the vehicle hovered (no horizontal step) do not count as length.
     still = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, 2.1], [3.0, 0.0, 2.0], [3.0, 0.0, 2.0]])
     np.testing.assert_allclose(retreat_path(still, 1.0)[-1], [2.0, 0.0, 2.0 + 0.1 / 3.0])
+
+
+def test_the_way_back_starts_where_the_vehicle_stopped_at_its_height():
+    flown = np.array([[0.0, 0.0, 2.0], [1.0, 0.0, 2.0], [2.0, 0.0, 2.5]])
+    way = landing_way(flown, np.array([2.6, 0.1, 2.2]), 1.5)  # the brake carried it 0.6 m on
+    np.testing.assert_allclose(way, [[2.6, 0.1, 2.2], [2.0, 0.0, 2.2], [1.0, 0.0, 2.2], [0.5, 0.0, 2.2]])
+    np.testing.assert_allclose(cut_path(way, 0.0), way[:1])  # no travel: where it stopped
+    np.testing.assert_allclose(cut_path(way, np.hypot(0.6, 0.1) + 0.25)[-1], [1.75, 0.0, 2.2])
+    np.testing.assert_allclose(landing_way(flown[:0], np.array([2.6, 0.1, 2.2]), 1.5), [[2.6, 0.1, 2.2]])  # nothing flown
 
 
 def test_the_tracker_leads_along_the_path_and_pulls_back_onto_it():
@@ -101,9 +112,11 @@ def test_the_retreat_is_a_mission_key_with_bounds():
         MissionConfig(land_retreat_m=-1.0)
 
 
-async def _fly_and_retreat(model_path, vehicle, goal, retreat_m, camera=None, land_in_offboard=False):
+async def _fly_and_retreat(model_path, vehicle, goal, retreat_m, camera=None, land_in_offboard=False, site_search_m=0.0):
+    """Fly to ``goal`` and land (``site_search_m`` = 0: ``retreat_m`` back, unchecked)."""
     config = RuntimeConfig(watchdog=WatchdogConfig(hold_grace_s=0.3, brake_timeout_s=4.0), recorder=RecorderConfig(log_dir=None),
-                           mission=MissionConfig(land_retreat_m=retreat_m, land_in_offboard=land_in_offboard))  # fmt: skip
+                           mission=MissionConfig(land_retreat_m=retreat_m, land_in_offboard=land_in_offboard,
+                                                 land_site_search_m=site_search_m))  # fmt: skip
     await vehicle.start()
     loop = FlightLoop(config, PolicyModel(model_path), vehicle, camera or FakeCamera(), None)
     await loop.start()
@@ -175,9 +188,9 @@ def test_a_pilot_taking_over_during_the_retreat_gets_the_vehicle_and_no_hold(goa
     vehicle = PilotTakesOverWhileRetreating()
     retreat = FlightLoop.retreat
 
-    async def retreat_with_a_pilot(loop, distance_m):
+    async def retreat_with_a_pilot(loop, path_enu_m):
         vehicle.retreating = True
-        return await retreat(loop, distance_m)
+        return await retreat(loop, path_enu_m)
 
 
     monkeypatch.setattr(FlightLoop, "retreat", retreat_with_a_pilot)

@@ -21,7 +21,7 @@ def table():
 
 
 def _summary(tmp_path: Path, name: str, contact_t: float | None, goal_t: float | None, modes, retreat: str | None = None,
-             descent: str | None = None) -> dict:  # fmt: skip
+             descent: str | None = None, site: dict | None = None) -> dict:  # fmt: skip
     run_dir = tmp_path / name
     run_dir.mkdir()
     (run_dir / "trace.json").write_text(json.dumps({"mode_log": modes}))
@@ -29,7 +29,7 @@ def _summary(tmp_path: Path, name: str, contact_t: float | None, goal_t: float |
     return {"level": 0, "seed": 1, "outcome": "crash" if contact_t else "success", "ground_truth": truth, "run_dir": str(run_dir),
             "time_s": 6.0, "step_ms": {"p99": 40.0}, "watchdog_trips": [],
             "brake": {"ended": "stopped", "speed_at_hold_m_s": 0.1, **({"retreat": {"ended": retreat}} if retreat else {}),
-                      **({"descent": {"ended": descent}} if descent else {})}}  # fmt: skip
+                      **({"descent": {"ended": descent}} if descent else {}), **({"landing_site": site} if site else {})}}  # fmt: skip
 
 
 def test_each_contact_is_put_in_its_phase(table, tmp_path):
@@ -43,11 +43,12 @@ def test_each_contact_is_put_in_its_phase(table, tmp_path):
 
 def test_the_table_counts_phases_and_retreats(table, tmp_path, capsys):
     modes = [[10.0, "OFFBOARD"], [20.0, "HOLD"]]
-    rows = [_summary(tmp_path, "a", None, 16.0, modes, "arrived", "disarmed"), _summary(tmp_path, "b", 18.0, 16.0, modes, "timeout"),
+    sites = [{"travel_m": 0.7, "clear": True}, {"travel_m": 0.0, "clear": False}]
+    rows = [_summary(tmp_path, "a", None, 16.0, modes, "arrived", "disarmed", sites[0]), _summary(tmp_path, "b", 18.0, 16.0, modes, "timeout", site=sites[1]),
             _summary(tmp_path, "c", 12.0, None, modes)]
     path = tmp_path / "summaries.jsonl"
     path.write_text("\n".join(json.dumps(r) for r in rows) + "\n")
     assert table.main(str(path)) == 0
     out = capsys.readouterr().out
     assert "| 0 | 3 | 33 |" in out
-    assert "| 0 | 0 | 1 | 1 | 0 | {'arrived': 1, 'timeout': 1} | {'disarmed': 1} |" in out
+    assert "| 0 | 0 | 1 | 1 | 0 | {'arrived': 1, 'timeout': 1} | {'disarmed': 1} | 2 / 1 / 0.35, 0.70 / 1 |" in out

@@ -474,18 +474,19 @@ class MissionConfig:
     allow_arm_takeoff: bool = False
     takeoff_alt_m: float = 1.5  # m above home, with allow_arm_takeoff
     max_episodes: int = 0  # 0 = fly every time the pilot selects offboard, until stopped
-    # With allow_arm_takeoff: after the goal (the last one), land at the nearest point of the way
-    # back (from where the vehicle stopped, back along the path flown, at most land_site_search_m
-    # back) whose column down to the floor is land_clearance_m (m, horizontal) clear of the surfaces
-    # the episode's depth frames showed, and whose way there keeps land_way_clearance_m from those
-    # at the height flown (runtime.watchdog.choose_landing_site; PX4's Hold and Land drift up to
-    # ~1.1 m while descending, docs/px4-sitl.md §8).  Where the frames showed no surface at all:
-    # land_retreat_m back along the path, unchecked; likewise always with land_site_search_m = 0.
+    # With allow_arm_takeoff: after the goal (the last one), land at the point of the way back (from
+    # where the vehicle stopped, back along the path flown, at most land_site_search_m back) nearest
+    # land_retreat_m back along the path whose column down to the floor is land_clearance_m (m,
+    # horizontal) clear of the surfaces the episode's depth frames showed, and whose way there keeps
+    # land_way_clearance_m from those at the height flown (runtime.watchdog.choose_landing_site;
+    # PX4's Hold and Land drift up to ~1.1 m while descending, docs/px4-sitl.md §8).  Where the frames
+    # showed no surface at all: land_retreat_m back, unchecked; likewise always with land_site_search_m = 0.
     land_retreat_m: float = 1.5
     land_site_search_m: float = 5.0
-    land_clearance_m: float = 0.8  # the vehicle's radius 0.2 m + the landing's true drift (PX4 SIH: 0.74 m at most)
-    # the vehicle's radius 0.2 m + PX4's estimate drift and the retreat's tracking error (0.2-0.3 m on PX4 SIH)
-    land_way_clearance_m: float = 0.5
+    land_clearance_m: float = 1.0  # the vehicle's radius 0.2 m + the landing's true drift (PX4 SIH: 0.74-0.9 m at most)
+    # the vehicle's radius 0.2 m + PX4's estimate drift and the retreat's tracking error (0.2-0.3 m
+    # on PX4 SIH) + what a thin obstacle seen from afar is off (a post seen 0.53 m off was 0.28 m)
+    land_way_clearance_m: float = 0.6
     # With allow_arm_takeoff: then land under the runtime's own control (offboard, descending while
     # it holds its position estimate where the descent began) instead of the autopilot's Land, which
     # holds the position *estimate* and drifted 0.2-1 m with it while descending on PX4 SIH.

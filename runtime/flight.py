@@ -238,8 +238,9 @@ class FlightLoop:
         """Brake (``runtime.watchdog.brake_setpoint`` at the control rate) until the vehicle has
         stopped (``runtime.watchdog.brake_ended``), then Hold; returns the brake's record (None if
         the pilot has the vehicle: nothing sent).  With ``land_site`` and the vehicle stopped, go
-        to the landing site (``runtime.watchdog.choose_landing_site``: the nearest point of the way
-        back along the path flown clear of what the depth frames showed, reached clear of it; the
+        to the landing site (``runtime.watchdog.choose_landing_site``: the point of the way back
+        along the path flown nearest ``mission.land_retreat_m`` back that is clear of what the depth
+        frames showed, reached clear of it; the
         record's ``landing_site``; ``mission.land_site_search_m`` = 0: ``mission.land_retreat_m``
         back, unchecked) by :meth:`retreat`, and brake again before the Hold (the record's
         ``retreat``).  With ``land`` and the vehicle stopped, :meth:`descend` instead of the Hold
@@ -254,7 +255,7 @@ class FlightLoop:
             way = landing_way(flown, self.vehicle.state().pos_enu_m, max(mission.land_site_search_m, mission.land_retreat_m))
             site = None
             if mission.land_site_search_m > 0.0:
-                site = choose_landing_site(way, self._seen, mission.land_clearance_m, mission.land_way_clearance_m, mission.land_retreat_m)
+                site = choose_landing_site(way, self._seen, mission.land_retreat_m, mission.land_clearance_m, mission.land_way_clearance_m)
                 (log.info if site.clear else log.warning)("landing site: %s", site)
                 travel_m = site.travel_m
             else:
@@ -463,8 +464,9 @@ class FlightLoop:
     async def fly(self, goal_enu_m: np.ndarray, timeout_s: float, landing_next: bool = False) -> EpisodeResult:
         """Fly the policy from now (offboard active) to ``goal_enu_m`` (local ENU, m).  With
         ``landing_next`` (a dry run's last goal), a goal reached is followed by the brake, a retreat
-        back along the path flown to the landing site (:meth:`retreat`: the nearest point of the
-        way back clear of what the depth frames showed, reached clear of it), the brake again,
+        back along the path flown to the landing site (:meth:`retreat`: the point of the way back
+        nearest ``mission.land_retreat_m`` back clear of what the depth frames showed, reached
+        clear of it), the brake again,
         then the landing in offboard (:meth:`descend`, ``mission.land_in_offboard``) or Hold."""
         self.set_goal(goal_enu_m)
         settle_heap()

@@ -29,20 +29,24 @@ SEEN_FLOOR_BAND_PER_M = 0.1
 # ... and rarer ones beyond: a cell is a surface once that many frames showed one in it (an obstacle
 # in view is in tens of frames, each with several points).
 SEEN_MIN_FRAMES = 3
+# The heights a cell holds surfaces at, in bins of this size (a post below and the ceiling above
+# share a column: the way back at the height between them passes neither).
+SEEN_BIN_M = 0.1
+_BIN_OFFSET, _BINS = 40, 160  # bins from 4 m below the local origin to 12 m above it
 
 
 class SeenSurfaces:
-    """Surfaces (not the floor) the depth frames of an episode showed, as the lowest and highest
-    heights seen in each cell of a horizontal grid of ``SEEN_CELL_M`` (local ENU, the estimate's
-    frame)."""
+    """Surfaces (not the floor) the depth frames of an episode showed, in each cell of a horizontal
+    grid of ``SEEN_CELL_M`` (local ENU, the estimate's frame): the lowest height seen and the
+    heights seen, in bins of ``SEEN_BIN_M``."""
 
     def __init__(self) -> None:
-        # per cell: the lowest and highest height seen (m) and how many frames showed a surface in it
-        self._cells: dict[tuple[int, int], tuple[float, float, int]] = {}
+        # per cell: the lowest height seen (m), the height bins seen (a bit mask), how many frames showed a surface in it
+        self._cells: dict[tuple[int, int], tuple[float, int, int]] = {}
 
-    def _surfaces(self) -> dict[tuple[int, int], tuple[float, float]]:
-        """The cells that are surfaces (shown by SEEN_MIN_FRAMES frames): their lowest and highest height."""
-        return {cell: (low, high) for cell, (low, high, frames) in self._cells.items() if frames >= SEEN_MIN_FRAMES}
+    def _surfaces(self) -> dict[tuple[int, int], tuple[float, int]]:
+        """The cells that are surfaces (shown by SEEN_MIN_FRAMES frames): their lowest height and height bins."""
+        return {cell: (low, bins) for cell, (low, bins, frames) in self._cells.items() if frames >= SEEN_MIN_FRAMES}
 
     def __len__(self) -> int:
         return len(self._surfaces())
@@ -58,21 +62,42 @@ class SeenSurfaces:
         if len(world) == 0:
             return 0
         cells, inverse = np.unique(np.floor(world[:, :2] / SEEN_CELL_M).astype(np.int64), axis=0, return_inverse=True)
-        lowest, highest = np.full(len(cells), np.inf), np.full(len(cells), -np.inf)
-        np.minimum.at(lowest, inverse.reshape(-1), world[:, 2])
-        np.maximum.at(highest, inverse.reshape(-1), world[:, 2])
-        for (i, j), low, high in zip(cells.tolist(), lowest.tolist(), highest.tolist()):
-            low_before, high_before, frames = self._cells.get((i, j), (np.inf, -np.inf, 0))
-            self._cells[(i, j)] = (min(low, low_before), max(high, high_before), frames + 1)
+        inverse = inverse.reshape(-1)
+        lowest = np.full(len(cells), np.inf)
+        np.minimum.at(lowest, inverse, world[:, 2])
+        bins = [0] * len(cells)
+        for k, b in np.unique(np.stack([inverse, _height_bin(world[:, 2])], axis=1), axis=0).tolist():
+            bins[k] |= 1 << b
+        for (i, j), low, seen_bins in zip(cells.tolist(), lowest.tolist(), bins):
+            low_before, bins_before, frames = self._cells.get((i, j), (np.inf, 0, 0))
+            self._cells[(i, j)] = (min(low, low_before), bins_before | seen_bins, frames + 1)
         return len(world)
 
-    def clearance_m(self, points_xy_m: np.ndarray, below_z_m: float, above_z_m: float = -np.inf) -> np.ndarray:
-        """[N] horizontal distance from each point (N, 2) to the nearest cell centre with a surface
-        seen below height ``below_z_m`` (and, with ``above_z_m``, above that height: a surface
-        spanning a height band); inf where there is none."""
-        points = np.asarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
-        cells = [cell for cell, (low, high) in self._surfaces().items() if low < below_z_m and high > above_z_m]
-        if not cells:
-            return np.full(len(points), np.inf)
-        centres = (np.array(cells, dtype=np.float64) + 0.5) * SEEN_CELL_M
-        return np.sqrt(((points[:, None, :] - centres[None, :, :]) ** 2).sum(axis=2).min(axis=1))
+    def cells_xy_m(self, below_z_m: float, above_z_m: float | None = None) -> np.ndarray:
+        """(K, 2) the centres of the cells with a surface seen below height ``below_z_m`` (with
+        ``above_z_m``: between the two heights, to a bin)."""
+        if above_z_m is None:
+            cells = [cell for cell, (low, _) in self._surfaces().items() if low < below_z_m]
+        else:
+            first, last = (int(b) for b in _height_bin(np.array([above_z_m, below_z_m])))
+            band = ((1 << (last + 1)) - 1) ^ ((1 << first) - 1)
+            cells = [cell for cell, (_, bins) in self._surfaces().items() if bins & band]
+        return (np.array(cells, dtype=np.float64).reshape(-1, 2) + 0.5) * SEEN_CELL_M
+
+    def clearance_m(self, points_xy_m: np.ndarray, below_z_m: float, above_z_m: float | None = None) -> np.ndarray:
+        """[N] horizontal distance from each point (N, 2) to the nearest of :meth:`cells_xy_m`;
+        inf where there is none."""
+        return nearest_m(points_xy_m, self.cells_xy_m(below_z_m, above_z_m))
+
+
+def _height_bin(z_m: np.ndarray) -> np.ndarray:
+    """The height bin of each height (m, local ENU), clamped to the bins kept."""
+    return np.clip(np.floor(np.asarray(z_m) / SEEN_BIN_M).astype(np.int64) + _BIN_OFFSET, 0, _BINS - 1)
+
+
+def nearest_m(points_xy_m: np.ndarray, cells_xy_m: np.ndarray) -> np.ndarray:
+    """[N] horizontal distance from each point (N, 2) to the nearest of ``cells_xy_m`` (K, 2); inf if K = 0."""
+    points = np.asarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
+    if len(cells_xy_m) == 0:
+        return np.full(len(points), np.inf)
+    return np.sqrt(((points[:, None, :] - cells_xy_m[None, :, :]) ** 2).sum(axis=2).min(axis=1))

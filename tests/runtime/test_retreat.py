@@ -112,11 +112,12 @@ def test_the_retreat_is_a_mission_key_with_bounds():
         MissionConfig(land_retreat_m=-1.0)
 
 
-async def _fly_and_retreat(model_path, vehicle, goal, retreat_m, camera=None, land_in_offboard=False, site_search_m=0.0):
-    """Fly to ``goal`` and land (``site_search_m`` = 0: ``retreat_m`` back, unchecked)."""
+async def _fly_and_retreat(model_path, vehicle, goal, retreat_m, camera=None, land_in_offboard=False, **mission):
+    """Fly to ``goal`` and land (``mission``: more MissionConfig keys; by default
+    ``land_site_search_m`` = 0: ``retreat_m`` back, unchecked)."""
+    mission = {"land_site_search_m": 0.0, **mission}
     config = RuntimeConfig(watchdog=WatchdogConfig(hold_grace_s=0.3, brake_timeout_s=4.0), recorder=RecorderConfig(log_dir=None),
-                           mission=MissionConfig(land_retreat_m=retreat_m, land_in_offboard=land_in_offboard,
-                                                 land_site_search_m=site_search_m))  # fmt: skip
+                           mission=MissionConfig(land_retreat_m=retreat_m, land_in_offboard=land_in_offboard, **mission))  # fmt: skip
     await vehicle.start()
     loop = FlightLoop(config, PolicyModel(model_path), vehicle, camera or FakeCamera(), None)
     await loop.start()

@@ -55,10 +55,12 @@ def test_a_tiny_teacher_trains_on_the_low_resolution_env_and_is_evaluated_alone(
     assert card["config"]["obs_dim"] == NavEnvConfig().privileged_obs_dim == STATE_DIM + 32 * 18
     assert card["step"] == 512
     stdout, _ = _cmnav("eval", "policy", "--policy", str(trained / "teacher"), "--episodes", "2", "--levels", "0",
-                       "--batch-envs", "2", "--conditions", "clean,corrupted,px4", "--out", str(tmp_path), "--json")  # fmt: skip
+                       "--batch-envs", "2", "--conditions", "clean,corrupted,px4,field", "--out", str(tmp_path), "--json")  # fmt: skip
     result = json.loads(stdout.strip().splitlines()[-1])
-    # It sees clean depth only: the rows whose depth is clean (px4 changes the vehicle alone).
-    assert result["role"] == "teacher" and [c["condition"] for c in result["cells"]] == ["clean", "px4"]
+    # It sees clean depth and the true state only: the rows whose depth is clean (px4 changes the
+    # vehicle alone) and the field, whose vehicle, latency and speed caps it still flies.
+    assert result["role"] == "teacher" and [c["condition"] for c in result["cells"]] == ["clean", "px4", "field"]
+    assert result["field"]["field"]["action_limits"]["max_speed_m_s"] == 1.0
     with pytest.raises(ExportError, match="privileged teacher"):
         export_policy(trained / "enc", trained / "teacher", tmp_path / "t.onnx", random_samples=1)
 

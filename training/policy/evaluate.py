@@ -183,9 +183,10 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
         if config.encoder_dir is not None:
             raise ValueError(f"{config.policy_dir} is a privileged teacher (state + clean low-resolution depth, no "
                              f"encoder): evaluate it without --encoder")  # fmt: skip
-        # It sees clean depth whatever the camera does: only the rows with clean depth describe it
-        # (clean, and the vehicle-only px4).
-        conditions = tuple(c for c in conditions if c == "clean" or c in PX4_VEHICLE_CONDITIONS) or ("clean",)
+        # It sees clean depth and the true state whatever the camera and the estimate do: only the
+        # rows with clean depth (clean, the vehicle-only px4) and the field (its vehicle, latency
+        # and speed caps; the bound of what a student distilled from it can reach) describe it.
+        conditions = tuple(c for c in conditions if c == "clean" or c in PX4_VEHICLE_CONDITIONS + FIELD_CONDITIONS) or ("clean",)
         fingerprint, encoder, action_parity = None, None, None
     elif config.encoder_dir is None:
         raise ValueError(f"{config.policy_dir} flies on an encoder's latent: pass --encoder (the checkpoint it was trained with)")

@@ -483,7 +483,7 @@ class MissionConfig:
     # showed no surface at all: land_retreat_m back, unchecked; likewise always with land_site_search_m = 0.
     land_retreat_m: float = 1.5
     land_site_search_m: float = 5.0
-    land_clearance_m: float = 1.0  # the vehicle's radius 0.2 m + the landing's true drift (PX4 SIH: 0.74-0.9 m at most)
+    land_clearance_m: float = 1.0  # the vehicle's radius 0.2 m + the landing's true drift (PX4 SIH: 0.67-0.74 m at most) + the cells' 0.1 m
     # the vehicle's radius 0.2 m + PX4's estimate drift and the retreat's tracking error (0.2-0.3 m
     # on PX4 SIH) + what a thin obstacle seen from afar is off (a post seen 0.53 m off was 0.28 m)
     land_way_clearance_m: float = 0.6

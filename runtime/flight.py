@@ -240,10 +240,9 @@ class FlightLoop:
         the pilot has the vehicle: nothing sent).  With ``land_site`` and the vehicle stopped, go
         to the landing site (``runtime.watchdog.choose_landing_site``: the point of the way back
         along the path flown nearest ``mission.land_retreat_m`` back that is clear of what the depth
-        frames showed, reached clear of it; the
-        record's ``landing_site``; ``mission.land_site_search_m`` = 0: ``mission.land_retreat_m``
-        back, unchecked) by :meth:`retreat`, and brake again before the Hold (the record's
-        ``retreat``).  With ``land`` and the vehicle stopped, :meth:`descend` instead of the Hold
+        frames showed, reached clear of it; the record's ``landing_site``;
+        ``mission.land_site_search_m`` = 0: ``mission.land_retreat_m`` back, unchecked) by
+        :meth:`retreat`, and brake again before the Hold (the record's ``retreat``).  With ``land`` and the vehicle stopped, :meth:`descend` instead of the Hold
         (the record's ``descent``); Hold only if it did not reach the ground.  Raises VehicleError
         if a command fails."""
         record = await self._brake()

@@ -347,7 +347,7 @@ def path_point(path: np.ndarray, at_m: np.ndarray, along_m: float) -> np.ndarray
 # nothing to choose by: mission.land_retreat_m back, unchecked.
 LANDING_SITE_STEP_M = 0.1  # the candidates' spacing along the way
 LANDING_HEIGHT_MARGIN_M = 0.3  # surfaces seen up to this far above the landing height are in its way
-LANDING_WAY_HEIGHT_MARGIN_M = 0.3  # surfaces spanning the flight height +- this are in the way there
+LANDING_WAY_HEIGHT_MARGIN_M = 0.3  # surfaces seen within the flight height +- this are in the way there
 
 
 def landing_way(flown_enu_m: np.ndarray, stop_enu_m: np.ndarray, back_m: float) -> np.ndarray:
@@ -409,19 +409,19 @@ def choose_landing_site(way_enu_m: np.ndarray, seen: SeenSurfaces, preferred_bac
     # The surfaces at the flight height: those nearer than way_clearance_m where the vehicle stopped
     # it moves away from (no nearer to them than it was); all others at way_clearance_m at least.
     beside_cells = seen.cells_xy_m(height_z_m + LANDING_WAY_HEIGHT_MARGIN_M, height_z_m - LANDING_WAY_HEIGHT_MARGIN_M)
-    near = nearest_m(beside_cells, points[:1].reshape(1, 2)) < way_clearance_m if len(beside_cells) else np.zeros(0, bool)
+    near = nearest_m(beside_cells, points[:1]) < way_clearance_m
     from_near, from_others = nearest_m(points, beside_cells[near]), nearest_m(points, beside_cells[~near])
     way_least = np.minimum.accumulate(np.minimum(from_near, from_others))
     # a point is reached if no point before it on the way (itself included) came nearer than that
     reached = np.logical_and.accumulate((from_others >= way_clearance_m) & (from_near >= from_near[0] - LANDING_SITE_STEP_M))
+    ok = reached & (below >= clearance_m)
     order = np.argsort(np.abs(travels_m - preferred_m), kind="stable")
-    ok = reached[order] & (below[order] >= clearance_m)
-    best = order[int(np.argmax(ok))] if ok.any() else order[int(np.argmax(np.where(reached[order], below[order], -np.inf)))]
+    best = order[int(np.argmax(ok[order]))] if ok.any() else order[int(np.argmax(np.where(reached[order], below[order], -np.inf)))]
     return LandingSite(
         travel_m=round(float(travels_m[best]), 3),
         clearance_m=round(float(below[best]), 3) if np.isfinite(below[best]) else None,
         way_clearance_m=round(float(way_least[best]), 3) if np.isfinite(way_least[best]) else None,
-        clear=bool(reached[best] and below[best] >= clearance_m),
+        clear=bool(ok[best]),
         surface_cells=len(seen),
     )
 

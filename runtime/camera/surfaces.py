@@ -5,7 +5,7 @@ free at the height it was flown, not below it: on PX4 SIH a flight that passed o
 (level 6, seed 7003).  And the way back to a site passes what the path passed: at level 15 two
 retreats touched a thin post or a slab's edge beside the path (0.2-0.3 m of estimate drift and
 tracking error on a path that had cleared them by 0.4-0.5 m).  Each step's frame adds the surfaces
-it shows (walls, obstacles; not the floor) to a horizontal grid, with the heights they span.
+it shows (walls, obstacles; not the floor) to a horizontal grid, with the heights they were seen at.
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ log = logging.getLogger("cmnav")
 # sim.sitl.camera_feed.DEPTH_MODES, spelled here so that building the parser imports no torch
 # (tests/cmnav/test_cli_args.py holds them equal).
 SITL_DEPTH_MODES = ("none", "projector-off", "stereo", "stereo-projector-off")
-VEHICLE_CHOICES = ("ideal", "px4")  # training.policy.field.VEHICLES, likewise
+VEHICLE_CHOICES = ("ideal", "px4", "field")  # training.policy.field.VEHICLES, likewise
 SITL_ESTIMATES = ("exact", "px4")  # sim.sitl.estimate.ESTIMATES, likewise
 VELOCITY_BIAS_MODES = ("correct", "off")  # runtime.tracking.VELOCITY_BIAS_MODES, likewise
 
@@ -595,9 +595,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     def add_vehicle_option(command: argparse.ArgumentParser, *fields: str) -> None:
         _config_option(command, "--vehicle", *fields, choices=VEHICLE_CHOICES,
-                       help="the vehicle flown: ideal (commands followed at once) or px4 (PX4 v1.16's identified response "
+                       help="the vehicle flown: ideal (commands followed at once), px4 (PX4 v1.16's identified response "
                        "with its delays, image-to-command latency and EKF2-like estimates, randomized per episode: Table "
-                       "II's `px4`; a teacher still observes the true state)")  # fmt: skip
+                       "II's `px4`) or field (px4 under examples/cmnav.toml's speed caps, episodes lengthened as the "
+                       "top speed is cut: Table II's `field` less its camera; a teacher still observes the true state)")  # fmt: skip
 
     def add_end_at_goal_option(command: argparse.ArgumentParser, *fields: str) -> None:
         _config_option(command, "--end-at-goal", *fields, action="store_true",

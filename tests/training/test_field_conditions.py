@@ -27,9 +27,10 @@ from training.cmwae.model import Cmwae, make_config
 from training.policy.contract_torch import action_to_velocity_flu_batch
 from training.policy.dagger import DaggerConfig
 from training.policy.env import NavEnv, NavEnvConfig
-from training.policy.evaluate import PolicyEvalConfig, evaluate_policy, table2_env
+from training.policy.evaluate import PolicyEvalConfig, condition_env_overrides, evaluate_policy, table2_env
 from training.policy.field import FieldConfigError, field_action_limits, field_env_overrides, px4_vehicle_env_overrides
 from training.policy.network import POLICY_SIZES, ActorCritic
+from training.policy.train import PolicyTrainConfig
 
 pytestmark = pytest.mark.timeout(300)
 PX4 = replace(PX4_SIH_V1_16, ground_contact=False)
@@ -337,9 +338,22 @@ def test_px4_condition_and_dagger_px4_vehicle_fly_pxs_response_with_the_trained_
     student.validate()
     env_config = student.env_config()
     assert env_config.dynamics == PX4 and env_config.corruption == "train" and env_config.gray_camera is None
-    for wrong, match in (({"vehicle": "px5"}, "vehicle"), ({"vehicle": "px4", "field_conditions": True}, "one of them")):
+    for wrong, match in (({"vehicle": "px5"}, "vehicle"), ({"vehicle": "px4", "field_conditions": True}, "one of them"),
+                         ({"vehicle": "field", "field_conditions": True}, "one of them")):
         with pytest.raises(ValueError, match=match):
             DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", **wrong).validate()
+
+
+def test_the_field_vehicle_is_the_fields_less_its_camera():
+    """``--vehicle field`` (a teacher for a field student) flies Table II's ``field`` vehicle, caps
+    and episode length, on clean depth and without the field's gray camera."""
+    teacher = PolicyTrainConfig(encoder_dir=None, out_dir="o", num_envs=4, vehicle="field")
+    teacher.validate()
+    flown, field = teacher.env_config(), condition_env_overrides("field")
+    for key in ("dynamics", "dynamics_randomization", "state_estimate", "latency_range_s", "action_limits", "episode_duration_s"):
+        assert getattr(flown, key) == field[key], key
+    assert flown.action_limits.max_speed_m_s == 1.0 and flown.max_steps == 2 * NavEnvConfig().max_steps
+    assert flown.corruption == "train" and flown.gray_camera is None
 
 
 def test_field_training_on_the_parametric_stereo_uses_it_and_costs_less(encoder):

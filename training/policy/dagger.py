@@ -115,8 +115,8 @@ class DaggerConfig:
         if self.field_depth not in FIELD_DEPTHS:
             raise ValueError(f"field_depth={self.field_depth!r} must be one of {', '.join(FIELD_DEPTHS)}")
         check_vehicle(self.vehicle)
-        if self.vehicle == "px4" and self.field_conditions:
-            raise ValueError("vehicle='px4' with the field: the field flies PX4's response already; give one of them")
+        if self.vehicle != "ideal" and self.field_conditions:
+            raise ValueError(f"vehicle={self.vehicle!r} with the field: the field flies its own vehicle already; give one of them")
         if not 0.0 <= self.beta_end <= self.beta_start <= 1.0:
             raise ValueError(f"need 0 <= beta_end ({self.beta_end}) <= beta_start ({self.beta_start}) <= 1")
         for key in ("env_steps", "num_envs", "rollout_steps", "buffer_rollouts", "epochs", "minibatches", "checkpoint_every"):

@@ -70,7 +70,9 @@ def field_action_limits(path: str | Path = FIELD_CONFIG_TOML) -> ActionLimits:
         raise FieldConfigError(f"{path}: [policy.limits] {err}") from err
 
 
-VEHICLES = ("ideal", "px4")  # the vehicles training flies: the batched sim's own, or PX4's (below)
+# The vehicles training flies: the batched sim's own, PX4's (below), or the field's (PX4's with the
+# field config's speed caps: what a teacher of a field student learns to fly).
+VEHICLES = ("ideal", "px4", "field")
 
 
 def check_vehicle(vehicle: str) -> None:
@@ -93,25 +95,33 @@ def px4_vehicle_env_overrides() -> dict:
     }
 
 
-def vehicle_env_overrides(vehicle: str) -> dict:
-    """The NavEnvConfig fields of a training run's ``vehicle`` (one of VEHICLES): none for the
-    batched sim's own, :func:`px4_vehicle_env_overrides` for PX4's."""
-    return px4_vehicle_env_overrides() if vehicle == "px4" else {}
-
-
-def field_env_overrides(limits: ActionLimits | None = None) -> dict:
-    """The NavEnvConfig fields of the field (see the module doc), besides its depth
-    (``corruption="stereo"``, which Table II's condition and DAgger set themselves).  ``limits``:
-    the caps (default: :func:`field_action_limits` of the shipped config)."""
+def field_vehicle_env_overrides(limits: ActionLimits | None = None) -> dict:
+    """The field's vehicle: PX4's (:func:`px4_vehicle_env_overrides`) under the speed caps of a
+    field config, the episode lengthened as the top speed is cut (see the module doc).  ``limits``:
+    the caps (default: :func:`field_action_limits` of the shipped config).  A teacher trained for a
+    field student flies this (``--vehicle field``): it observes clean depth and the true state."""
     limits = field_action_limits() if limits is None else limits
     if limits.max_speed_m_s <= 0.0:
         raise FieldConfigError("a field config with max_speed_m_s = 0 cannot fly to a goal: give a positive speed cap")
     return {
-        "gray_camera": GrayCameraConfig(),
         **px4_vehicle_env_overrides(),
         "action_limits": limits,
         "episode_duration_s": EPISODE_DURATION_S * MAX_SPEED_M_S / min(limits.max_speed_m_s, MAX_SPEED_M_S),
     }
+
+
+def vehicle_env_overrides(vehicle: str) -> dict:
+    """The NavEnvConfig fields of a training run's ``vehicle`` (one of VEHICLES): none for the
+    batched sim's own, :func:`px4_vehicle_env_overrides` for PX4's, :func:`field_vehicle_env_overrides`
+    for the field's."""
+    return {"ideal": dict, "px4": px4_vehicle_env_overrides, "field": field_vehicle_env_overrides}[vehicle]()
+
+
+def field_env_overrides(limits: ActionLimits | None = None) -> dict:
+    """The NavEnvConfig fields of the field (see the module doc), besides its depth
+    (``corruption="stereo"``, which Table II's condition and DAgger set themselves): the gray
+    camera and the field's vehicle (:func:`field_vehicle_env_overrides`)."""
+    return {"gray_camera": GrayCameraConfig(), **field_vehicle_env_overrides(limits)}
 
 
 def field_description(overrides: dict) -> dict:

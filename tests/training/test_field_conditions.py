@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 
 from runtime.contract import action_to_velocity_flu
 from runtime.contract.action import ActionLimits
-from runtime.contract.constants import CONTROL_PERIOD_S, MAX_INCLINATION_RAD, MAX_SPEED_M_S
+from runtime.contract.constants import CONTROL_PERIOD_S, LATENT_DIM, MAX_INCLINATION_RAD, MAX_SPEED_M_S, STATE_DIM
 from sim.delay import DelayLine, delay_steps
 from sim.dynamics import (PER_ENV_PARAMS, PX4_SIH_V1_16, CommandDelay, DynamicsRandomization, QuadrotorDynamics, QuadState,
                           sample_dynamics)  # fmt: skip
@@ -354,6 +354,29 @@ def test_the_field_vehicle_is_the_fields_less_its_camera():
         assert getattr(flown, key) == field[key], key
     assert flown.action_limits.max_speed_m_s == 1.0 and flown.max_steps == 2 * NavEnvConfig().max_steps
     assert flown.corruption == "train" and flown.gray_camera is None
+
+
+def test_ended_table2_episodes_are_not_matched_nor_encoded(encoder, monkeypatch):
+    """Table II's episodes do not reset: once one ends, its frames are never flown on, so the
+    stereo matching and the encoder skip it (they are most of a field cell's time); the live
+    episodes keep their own frames."""
+    env = table2_env(encoder, level=2, condition="stereo", num_envs=3, device="cpu", seed=1)
+    env.reset()
+    measured, depths = [], []
+    measure, render_inputs = env.stereo_sensor.measure, env.render_inputs
+    monkeypatch.setattr(env.stereo_sensor, "measure", lambda world, pos, quat, gen: measured.append(len(pos)) or measure(world, pos, quat, gen))
+    monkeypatch.setattr(env, "render_inputs", lambda: depths.append(render_inputs()[1][:, 0]) or (torch.zeros(3, 1, 224, 224), depths[-1].unsqueeze(1)))
+    full = env._observe()
+    env.active[1] = False
+    part = env._observe()
+    assert measured == [3, 2]
+    assert torch.equal(part[1, STATE_DIM:], torch.zeros(LATENT_DIM)) and torch.equal(part[:, :STATE_DIM], full[:, :STATE_DIM])
+    # Each live env keeps its own frames: only the matching's noise is drawn anew.
+    change = (depths[1] - depths[0]).abs().mean(dim=(1, 2))
+    between_envs = (depths[0][0] - depths[0][2]).abs().mean()
+    assert change[0] < 0.2 * between_envs and change[2] < 0.2 * between_envs
+    env.active[:] = False
+    assert torch.equal(env._observe()[:, STATE_DIM:], torch.zeros(3, LATENT_DIM)) and measured == [3, 2]
 
 
 def test_field_training_on_the_parametric_stereo_uses_it_and_costs_less(encoder):

@@ -512,7 +512,18 @@ class NavEnv:
         if self.stereo_sensor is not None:
             # The D455's own depth at its matching resolution (the gray camera's rays, twice the
             # pixels): the contract's preprocessing resizes it to 224 x 224 like any camera's.
-            depth_m = self.stereo_sensor.measure(self.world, cam_pos, cam_quat, self.generator).depth_m
+            # Ended episodes (Table II's, which do not reset) are not matched: their frames are
+            # never flown on; they keep the rendered depth, resized to the matching grid.
+            live = self.live_envs()
+            if len(live) == self.num_envs:
+                depth_m = self.stereo_sensor.measure(self.world, cam_pos, cam_quat, self.generator).depth_m
+            else:
+                grid = (self.stereo_sensor.camera.height_px, self.stereo_sensor.camera.width_px)
+                depth_m = F.interpolate(out.depth_m.unsqueeze(1), size=grid, mode="nearest").squeeze(1)
+                if len(live):
+                    live_dev = live.to(self.device)
+                    depth_m[live_dev] = self.stereo_sensor.measure(self.world.select(live_dev), cam_pos[live_dev],
+                                                                   cam_quat[live_dev], self.generator).depth_m  # fmt: skip
             t0 = self._timed("stereo", t0)
         elif self.stereo_approx is not None:  # on the camera's own grid
             depth_m = approx_stereo_depth(depth_m, out.gray_u8, self.camera.fx_px, self.stereo_approx, self.generator)
@@ -575,13 +586,21 @@ class NavEnv:
         """[N, 15 + W*H] the privileged observation of the current states."""
         return torch.cat([self._state_observation(), self.privileged_depth()], dim=-1)
 
+    def live_envs(self) -> Tensor:
+        """[K] int64 (CPU) the envs whose episode runs: all of them but Table II's ended ones
+        (``auto_reset=False``), whose observations are no longer flown on."""
+        return self.active.cpu().nonzero().squeeze(1)
+
     def _observe(self) -> Tensor:
         if self.encoder is None:
             return self.teacher_observation()
         gray, depth = self.render_inputs()
         t0 = time.perf_counter()
-        with torch.inference_mode():
-            latent = self.encoder(gray, depth).float()
+        live = self.live_envs().to(self.device)
+        latent = torch.zeros(self.num_envs, LATENT_DIM, device=self.device)
+        if len(live):  # ended episodes' latents are zero: never flown on
+            with torch.inference_mode():
+                latent[live] = self.encoder(gray[live], depth[live]).float()
         self._timed("encode", t0)
         assert latent.shape == (self.num_envs, LATENT_DIM)
         obs = torch.cat([self._state_observation(estimated=True), latent.clone()], dim=-1)

@@ -233,7 +233,7 @@ def _train_student(args: argparse.Namespace) -> int:
         max_wall_s=None if args.minutes is None else args.minutes * 60.0,
         **_given(args, "device", "seed", "corruption", "minibatches", "min_level", "max_level", "checkpoint_every", "precision",
                  "lr", "beta_start", "beta_decay_env_steps", "projector_off_episode_fraction", "near_weight", "near_m",
-                 "vehicle", "end_at_goal", "field_depth", num_envs="envs", rollout_steps="rollout", env_steps="steps", field_conditions="field"),
+                 "vehicle", "end_at_goal", "field_depth", "field_env_fraction", num_envs="envs", outside_teacher_dir="outside_teacher", rollout_steps="rollout", env_steps="steps", field_conditions="field"),
     )  # fmt: skip
     out = train_dagger(config)
     print(f"student checkpoint in {out}")
@@ -674,6 +674,12 @@ def build_parser() -> argparse.ArgumentParser:
     _config_option(policy, "--field-depth", "training.policy.dagger:DaggerConfig.field_depth", choices=("stereo", "approx"),
                    help="DAgger --field: the depth trained on: the simulated D455's stereo matching, or its parametric "
                    "stand-in (sim.sensor.approx, its error against stereo in docs/sensor.md; 3x the env-steps/s)")  # fmt: skip
+    _config_option(policy, "--field-env-fraction", "training.policy.dagger:DaggerConfig.field_env_fraction", type=float,
+                   help="DAgger --field: the share of the envs that fly the field; the others train as without --field "
+                   "(--corruption on --vehicle), labelled by --outside-teacher, so the student keeps Table II's clean rows")  # fmt: skip
+    _config_option(policy, "--outside-teacher", "training.policy.dagger:DaggerConfig.outside_teacher_dir", metavar="TEACHER_DIR",
+                   help="DAgger --field with --field-env-fraction below 1: the teacher of the envs outside the field "
+                   "(default: --teacher)")  # fmt: skip
     add_vehicle_option(policy, "training.policy.dagger:DaggerConfig.vehicle", "training.policy.train:PolicyTrainConfig.vehicle")
     add_end_at_goal_option(policy, "training.policy.dagger:DaggerConfig.end_at_goal", "training.policy.train:PolicyTrainConfig.end_at_goal")
     _config_option(policy, "--min-level", "training.policy.dagger:DaggerConfig.min_level", type=int,

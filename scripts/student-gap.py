@@ -63,8 +63,10 @@ def measure(args: argparse.Namespace) -> dict:
         outcome = torch.zeros(n, dtype=torch.long)
         while bool(env.active.any()):
             recon = cmwae.decoder(obs[:, STATE_DIM:])
-            squared = (recon - tap.depth) ** 2
-            close = near_surface_mask(tap.depth, args.near_m)
+            depth = torch.zeros_like(recon)  # ended episodes are not encoded (NavEnv.live_envs): no target there
+            depth[env.live_envs()] = tap.depth
+            squared = (recon - depth) ** 2
+            close = near_surface_mask(depth, args.near_m)
             action, _, h_student = student.step(obs, h_student)
             label, _, h_teacher = teacher.step(teacher_obs, h_teacher)
             active.append(env.active.clone())
@@ -72,7 +74,7 @@ def measure(args: argparse.Namespace) -> dict:
                 ((action.clamp(-1, 1) - label.clamp(-1, 1)) ** 2).mean(-1),
                 squared.mean(dim=(1, 2, 3)),
                 (squared * close).sum(dim=(1, 2, 3)) / close.sum(dim=(1, 2, 3)).clamp(min=1),
-                pooled_nearest_error(recon, tap.depth),
+                pooled_nearest_error(recon, depth),
                 close.float().mean(dim=(1, 2, 3)),
             ], dim=-1))  # fmt: skip
             step = env.step(action)

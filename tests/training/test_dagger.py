@@ -281,6 +281,36 @@ def test_the_distilled_student_exports_and_the_runtime_loads_it(trained, tmp_pat
         assert m["action_mse"] <= 4.0  # both actions lie in [-1, 1]
 
 
+def test_a_student_trains_in_the_field_and_outside_it_each_with_its_teacher(trained, tmp_path):
+    """``--field-env-fraction``: a share of the envs flies the field (the stand-in's stereo depth,
+    PX4's response under the caps), the others the training patches on the ideal vehicle, each
+    labelled by its teacher; a resume must split them alike."""
+    outside = tmp_path / "outside-teacher"
+    _cmnav(*TEACHER, "--out", str(outside), "--steps", "256", "--seed", "3")
+    out = tmp_path / "split"
+    args = ["train", "policy", "--teacher", str(trained / "teacher"), "--encoder", str(trained / "enc"), "--out", str(out),
+            "--size", "tiny", "--envs", "4", "--rollout", "8", "--minibatches", "2", "--precision", "fp32", "--beta-start", "0",
+            "--field", "--field-depth", "approx", "--field-env-fraction", "0.5", "--outside-teacher", str(outside)]  # fmt: skip
+    _, err = _cmnav(*args, "--steps", "32")
+    assert "success_field" in err and "success_outside" in err
+    card = json.loads((out / "model.json").read_text())
+    assert card["meta"]["train"]["field_env_fraction"] == 0.5 and card["meta"]["outside_teacher_fingerprint"]
+    assert len(load_train_state(out)["env_rngs"]) == 2
+    config = DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", num_envs=4, field_conditions=True, field_env_fraction=0.5,
+                          field_depth="approx")
+    (in_field, n_field), (outside_field, n_outside) = config.env_parts()
+    assert (in_field, n_field, outside_field, n_outside) == (True, 2, False, 2)
+    assert config.env_config(True, 2).action_limits.max_speed_m_s == 1.0 and config.env_config(False, 2).action_limits is None
+    assert config.env_config(False, 2).corruption == "train" and config.env_config(True, 2).corruption == "stereo-approx"
+    _cmnav(*args, "--steps", "64", "--resume")
+    assert json.loads((out / "model.json").read_text())["step"] == 64
+    proc = subprocess.run([sys.executable, "-m", "cmnav", *args[:-4], "--steps", "96", "--resume"],
+                          capture_output=True, text=True, timeout=280)  # fmt: skip
+    assert proc.returncode != 0 and "resume with the same --field and --field-env-fraction" in proc.stderr, proc.stderr[-2000:]
+    with pytest.raises(ValueError, match="need field_conditions"):
+        DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", field_env_fraction=0.5).validate()
+
+
 def test_flight_frames_are_recorded_clean_along_a_policy_s_flights_with_crash_windows_whole(trained, tmp_path):
     """`cmnav dataset --policy`: a tiny student flies (it crashes often); with --every-steps
     larger than any flight, a flight keeps its first frame, plus its last second when it crashed."""

@@ -75,6 +75,11 @@ class DaggerConfig:
     # The field's depth while training: "stereo" (the simulated D455, as Table II's ``field``
     # measures) or "approx" (its parametric stand-in, sim.sensor.approx: 3x the env-steps/s in cmnav bench train).
     field_depth: str = "stereo"
+    # With the field: the share of the envs that fly it; the others train as without it (the
+    # ``corruption`` patches on ``vehicle``), labelled by ``outside_teacher_dir`` (default: the
+    # teacher), so that the student keeps what it flies outside the field (Table II's clean rows).
+    field_env_fraction: float = 1.0
+    outside_teacher_dir: str | None = None
     # The vehicle the student flies: "ideal" (the batched sim's: commands followed at once) or
     # "px4" (PX4 v1.16's identified response, latency and EKF2-like estimates alone, Table II's
     # ``px4``: what `cmnav sitl --autopilot` flies); the field includes the latter.
@@ -99,11 +104,18 @@ class DaggerConfig:
     policy: PolicyConfig = PolicyConfig()
     env_overrides: dict = field(default_factory=dict)
 
-    def env_config(self) -> NavEnvConfig:
+    def env_parts(self) -> list[tuple[bool, int]]:
+        """The envs each rollout flies as (in the field, how many): the field's first."""
+        in_field = round(self.num_envs * self.field_env_fraction) if self.field_conditions else 0
+        return [(field, n) for field, n in ((True, in_field), (False, self.num_envs - in_field)) if n > 0]
+
+    def env_config(self, in_field: bool | None = None, num_envs: int | None = None) -> NavEnvConfig:
+        """The config of the envs in the field (``in_field``; default: with ``field_conditions``)
+        or outside it, ``num_envs`` of them (default: all)."""
+        in_field = self.field_conditions if in_field is None else in_field
         curriculum = CurriculumConfig(start_level=self.min_level, min_level=self.min_level, max_level=self.max_level)
-        field_options = {"corruption": FIELD_DEPTHS[self.field_depth], **field_env_overrides()} if self.field_conditions else {}
-        field_options |= vehicle_env_overrides(self.vehicle)
-        return replace(NavEnvConfig(num_envs=self.num_envs, corruption=self.corruption, curriculum=curriculum,
+        field_options = {"corruption": FIELD_DEPTHS[self.field_depth], **field_env_overrides()} if in_field else vehicle_env_overrides(self.vehicle)
+        return replace(NavEnvConfig(num_envs=num_envs or self.num_envs, corruption=self.corruption, curriculum=curriculum,
                                     corrupted_env_fraction=self.corrupted_env_fraction, level_sampling="uniform",
                                     projector_off_episode_fraction=self.projector_off_episode_fraction,
                                     end_at_goal=self.end_at_goal),
@@ -115,8 +127,14 @@ class DaggerConfig:
         if self.field_depth not in FIELD_DEPTHS:
             raise ValueError(f"field_depth={self.field_depth!r} must be one of {', '.join(FIELD_DEPTHS)}")
         check_vehicle(self.vehicle)
-        if self.vehicle != "ideal" and self.field_conditions:
-            raise ValueError(f"vehicle={self.vehicle!r} with the field: the field flies its own vehicle already; give one of them")
+        if self.vehicle != "ideal" and self.field_conditions and self.field_env_fraction == 1.0:
+            raise ValueError(f"vehicle={self.vehicle!r} with the field in every env: the field flies its own vehicle already; "
+                             f"give one of them (or a field_env_fraction below 1 for the envs outside the field)")  # fmt: skip
+        if not 0.0 < self.field_env_fraction <= 1.0:
+            raise ValueError(f"field_env_fraction={self.field_env_fraction} must be in (0, 1]")
+        if (self.field_env_fraction < 1.0 or self.outside_teacher_dir is not None) and not self.field_conditions:
+            raise ValueError("field_env_fraction and outside_teacher_dir split the envs between the field and outside it: "
+                             "they need field_conditions")  # fmt: skip
         if not 0.0 <= self.beta_end <= self.beta_start <= 1.0:
             raise ValueError(f"need 0 <= beta_end ({self.beta_end}) <= beta_start ({self.beta_start}) <= 1")
         for key in ("env_steps", "num_envs", "rollout_steps", "buffer_rollouts", "epochs", "minibatches", "checkpoint_every"):
@@ -127,7 +145,8 @@ class DaggerConfig:
             raise ValueError(f"minibatches={self.minibatches} exceeds the buffer's {self.num_envs * self.buffer_rollouts} sequences")
         if self.policy.obs_dim != PolicyConfig().obs_dim:
             raise ValueError("the student is the deployed network: its observation is the contract's 79 values")
-        self.env_config().validate()
+        for in_field, n in self.env_parts():
+            self.env_config(in_field, n).validate()
 
     def beta(self, env_steps: int) -> float:
         """The teacher's share of the executed actions after ``env_steps`` env steps."""
@@ -239,14 +258,19 @@ def train_dagger(config: DaggerConfig) -> Path:
     out = Path(config.out_dir)
     torch.manual_seed(config.seed)
     teacher, teacher_card = load_teacher(config.teacher_dir, device)
-    env_config = config.env_config()
-    if teacher.config.obs_dim != env_config.privileged_obs_dim:
-        raise ValueError(f"the teacher observes {teacher.config.obs_dim} values, this env's privileged observation has "
-                         f"{env_config.privileged_obs_dim}: distil with the privileged depth size it was trained on")  # fmt: skip
+    outside_teacher = teacher if config.outside_teacher_dir is None else load_teacher(config.outside_teacher_dir, device)[0]
     cmwae, encoder_card = load_cmwae(config.encoder_dir, device)
     encoder_fingerprint = checkpoint_fingerprint(config.encoder_dir)
-    env = NavEnv(env_config, env_encoder(cmwae.encoder, config.precision, device, seed=config.seed), device,
-                 seed=config.seed * 1000 + 7, teacher_obs=True)  # fmt: skip
+    encoder = env_encoder(cmwae.encoder, config.precision, device, seed=config.seed)
+    parts = []  # (name, env, its teacher, its carry): the field's envs first
+    for k, (in_field, n) in enumerate(config.env_parts()):
+        env_config = config.env_config(in_field, n)
+        part_teacher = teacher if in_field or not config.field_conditions else outside_teacher
+        if part_teacher.config.obs_dim != env_config.privileged_obs_dim:
+            raise ValueError(f"the teacher observes {part_teacher.config.obs_dim} values, this env's privileged observation "
+                             f"has {env_config.privileged_obs_dim}: distil with the privileged depth size it was trained on")  # fmt: skip
+        env = NavEnv(env_config, encoder, device, seed=config.seed * 1000 + 7 + k, teacher_obs=True)
+        parts.append(("field" if in_field else "outside", env, part_teacher, {}))
     student = ActorCritic(config.policy).to(device)
     optimizer = torch.optim.Adam(student.parameters(), lr=config.lr)
     generator = torch.Generator().manual_seed(config.seed * 1000 + 11)
@@ -258,7 +282,12 @@ def train_dagger(config: DaggerConfig) -> Path:
         optimizer.load_state_dict(state["optimizer"])
         for group in optimizer.param_groups:
             group["lr"] = config.lr  # the configured rate, not the one the optimizer state carries
-        env.generator.set_state(state["env_rng"])
+        rngs = state.get("env_rngs") or [state["env_rng"]]  # env_rng: a state written before the envs could be split
+        if len(rngs) != len(parts):
+            raise ValueError(f"--resume: {out} trained {len(rngs)} group(s) of envs (in the field / outside it), this "
+                             f"config gives {len(parts)}: resume with the same --field and --field-env-fraction")  # fmt: skip
+        for (_, part_env, _, _), rng in zip(parts, rngs):
+            part_env.generator.set_state(rng)
         generator.set_state(state["rng"])
         iteration, env_steps = state["iteration"], state["env_steps"]
         init_meta = state.get("init_from")
@@ -269,7 +298,7 @@ def train_dagger(config: DaggerConfig) -> Path:
         if config.resume:
             log.warning("--resume: no training state in %s, starting %s", out,
                         "from scratch" if config.init_from is None else f"from {config.init_from}")  # fmt: skip
-        init_meta = None if config.init_from is None else init_from_policy(student, config.init_from, encoder_fingerprint, env)
+        init_meta = None if config.init_from is None else init_from_policy(student, config.init_from, encoder_fingerprint, parts[0][1])
     steps_per_iteration = config.rollout_steps * config.num_envs
     total_iterations = -(-config.env_steps // steps_per_iteration)
     writer = ScalarWriter(out / "tensorboard")
@@ -279,6 +308,7 @@ def train_dagger(config: DaggerConfig) -> Path:
         "train": {k: v for k, v in asdict(config).items() if k != "policy"},
         "teacher": str(config.teacher_dir), "teacher_fingerprint": checkpoint_fingerprint(config.teacher_dir),
         "teacher_env_steps": teacher_card.get("step"),
+        **({} if config.outside_teacher_dir is None else {"outside_teacher_fingerprint": checkpoint_fingerprint(config.outside_teacher_dir)}),
         "encoder": str(config.encoder_dir), "encoder_fingerprint": encoder_fingerprint,
         "encoder_step": encoder_card.get("step"),
         "encoder_scheme": encoder_card.get("meta", {}).get("train", {}).get("scheme"),
@@ -291,27 +321,33 @@ def train_dagger(config: DaggerConfig) -> Path:
         save_weights(out, student, CHECKPOINT_KIND, config.policy.to_json(), env_steps,
                      {**meta, "env_steps": env_steps, "iteration": iteration})  # fmt: skip
         save_train_state(out, {"model": student.state_dict(), "optimizer": optimizer.state_dict(), "iteration": iteration,
-                               "env_steps": env_steps, "env_rng": env.generator.get_state(), "rng": generator.get_state(),
+                               "env_steps": env_steps, "env_rngs": [part[1].generator.get_state() for part in parts], "rng": generator.get_state(),
                                "encoder_fingerprint": encoder_fingerprint, "init_from": init_meta, "vehicle": config.vehicle,
                                "end_at_goal": config.end_at_goal})  # fmt: skip
 
-    obs = env.reset()
-    carry = {"obs": obs, "teacher_obs": env.teacher_observation(), "starts": torch.ones(config.num_envs, dtype=torch.bool, device=device),
-             "h_student": student.initial_hidden(config.num_envs, device), "h_teacher": teacher.initial_hidden(config.num_envs, device)}  # fmt: skip
-    buffer: deque[Sequences] = deque(maxlen=config.buffer_rollouts)
+    for _, part_env, part_teacher, carry in parts:
+        n = part_env.num_envs
+        carry.update(obs=part_env.reset(), teacher_obs=part_env.teacher_observation(), starts=torch.ones(n, dtype=torch.bool, device=device),
+                     h_student=student.initial_hidden(n, device), h_teacher=part_teacher.initial_hidden(n, device))  # fmt: skip
+    buffer: deque[Sequences] = deque(maxlen=config.buffer_rollouts * len(parts))
     t_start = time.monotonic()
     while iteration < total_iterations:
         t_iter = time.monotonic()
         beta = config.beta(env_steps)
-        sequences, stats = collect(student, teacher, env, carry, config.rollout_steps, beta, generator, config.near_weight,
-                                   config.near_m)  # fmt: skip
-        buffer.append(sequences)
+        stats = {}
+        for name, part_env, part_teacher, carry in parts:
+            sequences, part_stats = collect(student, part_teacher, part_env, carry, config.rollout_steps, beta, generator,
+                                            config.near_weight, config.near_m)  # fmt: skip
+            buffer.append(sequences)
+            stats |= {(k if len(parts) == 1 else f"{name}/{k}"): v for k, v in part_stats.items()}
         loss = distill(student, optimizer, list(buffer), config.epochs, config.minibatches, config.max_grad_norm, generator)
         iteration += 1
         env_steps += steps_per_iteration
         writer.add_scalars(env_steps, {"dagger/loss": loss, "dagger/beta": beta, "perf/env_steps_per_s": steps_per_iteration / (time.monotonic() - t_iter)}
                            | {f"episodes/{k}": v for k, v in stats.items()})  # fmt: skip
-        progress.update(steps_per_iteration, beta=round(beta, 3), loss=loss, success=stats.get("success_rate", float("nan")))
+        success = {"success": stats.get("success_rate", float("nan"))} if len(parts) == 1 else {
+            f"success_{name}": stats.get(f"{name}/success_rate", float("nan")) for name, *_ in parts}  # fmt: skip
+        progress.update(steps_per_iteration, beta=round(beta, 3), loss=loss, **success)
         if iteration % config.checkpoint_every == 0 and iteration < total_iterations:
             checkpoint()
         if config.max_wall_s is not None and wall_budget_spent(config.max_wall_s, t_start, _SINGLE, device):

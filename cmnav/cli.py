@@ -676,7 +676,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "stand-in (sim.sensor.approx, its error against stereo in docs/sensor.md; 3x the env-steps/s)")  # fmt: skip
     _config_option(policy, "--field-env-fraction", "training.policy.dagger:DaggerConfig.field_env_fraction", type=float,
                    help="DAgger --field: the share of the envs that fly the field; the others train as without --field "
-                   "(--corruption on --vehicle), labelled by --outside-teacher, so the student keeps Table II's clean rows")  # fmt: skip
+                   "(--corruption on --vehicle, the paper's 10 s episodes even with --end-at-goal), labelled by --outside-teacher, "
+                   "so the student keeps Table II's clean rows")  # fmt: skip
     _config_option(policy, "--outside-teacher", "training.policy.dagger:DaggerConfig.outside_teacher_dir", metavar="TEACHER_DIR",
                    help="DAgger --field with --field-env-fraction below 1: the teacher of the envs outside the field "
                    "(default: --teacher)")  # fmt: skip

@@ -8,7 +8,7 @@ import json
 import subprocess
 import sys
 from collections import Counter
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -302,6 +302,9 @@ def test_a_student_trains_in_the_field_and_outside_it_each_with_its_teacher(trai
     assert (in_field, n_field, outside_field, n_outside) == (True, 2, False, 2)
     assert config.env_config(True, 2).action_limits.max_speed_m_s == 1.0 and config.env_config(False, 2).action_limits is None
     assert config.env_config(False, 2).corruption == "train" and config.env_config(True, 2).corruption == "stereo-approx"
+    ends = replace(config, end_at_goal=True)  # the runtime's rule in the field, the paper's outside it
+    assert ends.env_config(True, 2).end_at_goal and not ends.env_config(False, 2).end_at_goal
+    assert replace(ends, field_conditions=False, field_env_fraction=1.0).env_config().end_at_goal
     _cmnav(*args, "--steps", "64", "--resume")
     assert json.loads((out / "model.json").read_text())["step"] == 64
     proc = subprocess.run([sys.executable, "-m", "cmnav", *args[:-4], "--steps", "96", "--resume"],

@@ -84,7 +84,9 @@ class DaggerConfig:
     # "px4" (PX4 v1.16's identified response, latency and EKF2-like estimates alone, Table II's
     # ``px4``: what `cmnav sitl --autopilot` flies); the field includes the latter.
     vehicle: str = "ideal"
-    # Episodes end in success at the goal, as the runtime's do (NavEnvConfig.end_at_goal).
+    # Episodes end in success at the goal, as the runtime's do (NavEnvConfig.end_at_goal); with the
+    # envs split (field_env_fraction), in the field's envs only: the others keep the paper's 10 s,
+    # the rule of Table II's rows outside the field.
     end_at_goal: bool = False
     min_level: int = 0
     max_level: int = 20
@@ -118,7 +120,7 @@ class DaggerConfig:
         return replace(NavEnvConfig(num_envs=num_envs or self.num_envs, corruption=self.corruption, curriculum=curriculum,
                                     corrupted_env_fraction=self.corrupted_env_fraction, level_sampling="uniform",
                                     projector_off_episode_fraction=self.projector_off_episode_fraction,
-                                    end_at_goal=self.end_at_goal),
+                                    end_at_goal=self.end_at_goal and (in_field or not self.field_conditions)),
                        **(field_options | self.env_overrides))  # fmt: skip
 
     def validate(self) -> None:

@@ -7,8 +7,9 @@
 # (the follower waits until PX4 is ready), PX4 stopped by its PID.  Kept in OUT_DIR (default
 # runs/px4-campaign/<model name>): summaries.jsonl, runs/ (per flight: summary, MCAP log, plot,
 # report), px4-logs/ (PX4's console per flight).  SEED_START (default 7001), TIMEOUT_S (20),
-# INJECT (e.g. "camera-stall@3": passed to every flight as --inject), CMNAV / PYTHON as in
-# scripts/sitl-campaign.sh.  PX4 never runs outside this script's flights; nothing binds
+# INJECT (e.g. "camera-stall@3": passed to every flight as --inject), DEGRADE (the camera's depth,
+# `cmnav sitl --degrade`: none, projector-off, stereo or stereo-projector-off; default none),
+# CMNAV / PYTHON as in scripts/sitl-campaign.sh.  PX4 never runs outside this script's flights; nothing binds
 # anything but 127.0.0.1 on our side.
 set -euo pipefail
 build=$(realpath "$1"); MODEL=$2; LEVELS=${3:-"0"}; SEEDS=${4:-20}
@@ -17,6 +18,7 @@ mkdir -p "$OUT" && OUT=$(realpath "$OUT")  # PX4 runs in its own working folder:
 SEED_START=${SEED_START:-7001}
 TIMEOUT_S=${TIMEOUT_S:-20}
 INJECT=${INJECT:-}
+DEGRADE=${DEGRADE:-none}
 CMNAV=${CMNAV:-.venv/bin/cmnav}
 PYTHON=${PYTHON:-.venv/bin/python}
 [ -x "$build/bin/px4" ] || { echo "error: no PX4 binary at $build/bin/px4: build PX4 as docs/px4-sitl.md says" >&2; exit 2; }
@@ -38,7 +40,7 @@ for level in $LEVELS; do
         >"$OUT/px4-logs/level${level}-seed${seed}.log" 2>&1 </dev/null) &
     px4_pid=$!
     summary=$("$CMNAV" sitl --autopilot udp://127.0.0.1:14550 --model "$MODEL" --level "$level" --seed "$seed" \
-        --timeout "$TIMEOUT_S" --out "$OUT/runs" --json "${inject_args[@]}" 2>>"$OUT/sitl.log" | tail -n 1) || true
+        --timeout "$TIMEOUT_S" --degrade "$DEGRADE" --out "$OUT/runs" --json "${inject_args[@]}" 2>>"$OUT/sitl.log" | tail -n 1) || true
     stop_px4
     if [ -z "$summary" ]; then
       # No episode (e.g. PX4's take-off never reached its height): not in the table; sitl.log says why.

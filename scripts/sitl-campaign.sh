@@ -15,7 +15,7 @@
 #   VARIANTS="fp32 int8" REPLAY_VARIANT=int8 bash scripts/sitl-campaign.sh MODEL.onnx "0 3" 20
 # CMNAV / PYTHON pick the programs (default .venv/bin/cmnav, .venv/bin/python); TIMEOUT_S the
 # offboard time limit per flight; SEED_START the first seed (default 0); DEGRADE the SITL camera's
-# depth degradation (`cmnav sitl --degrade`: none or projector-off, default none).
+# depth (`cmnav sitl --degrade`: none, projector-off, stereo or stereo-projector-off; default none).
 set -euo pipefail
 MODEL=$1
 LEVELS=${2:-"0"}

@@ -267,7 +267,7 @@ def train_dagger(config: DaggerConfig) -> Path:
     parts = []  # (name, env, its teacher, its carry): the field's envs first
     for k, (in_field, n) in enumerate(config.env_parts()):
         env_config = config.env_config(in_field, n)
-        part_teacher = teacher if in_field or not config.field_conditions else outside_teacher
+        part_teacher = teacher if in_field else outside_teacher  # the same one unless the envs are split
         if part_teacher.config.obs_dim != env_config.privileged_obs_dim:
             raise ValueError(f"the teacher observes {part_teacher.config.obs_dim} values, this env's privileged observation "
                              f"has {env_config.privileged_obs_dim}: distil with the privileged depth size it was trained on")  # fmt: skip

@@ -597,10 +597,13 @@ class NavEnv:
         gray, depth = self.render_inputs()
         t0 = time.perf_counter()
         live = self.live_envs().to(self.device)
-        latent = torch.zeros(self.num_envs, LATENT_DIM, device=self.device)
-        if len(live):  # ended episodes' latents are zero: never flown on
-            with torch.inference_mode():
-                latent[live] = self.encoder(gray[live], depth[live]).float()
+        with torch.inference_mode():
+            if len(live) == self.num_envs:  # training's envs always: no copy of the batch
+                latent = self.encoder(gray, depth).float()
+            else:  # ended episodes' latents are zero: never flown on
+                latent = torch.zeros(self.num_envs, LATENT_DIM, device=self.device)
+                if len(live):
+                    latent[live] = self.encoder(gray[live], depth[live]).float()
         self._timed("encode", t0)
         assert latent.shape == (self.num_envs, LATENT_DIM)
         obs = torch.cat([self._state_observation(estimated=True), latent.clone()], dim=-1)

@@ -22,6 +22,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
+from numba import njit
 from torch import Tensor
 
 from runtime.contract.constants import DEPTH_INVALID_VALUE
@@ -66,48 +67,69 @@ def refine_subpixel(left_u8: np.ndarray, right_u8: np.ndarray, disparity: np.nda
     smoothness penalty P1 makes them symmetric about the whole disparity: its output locks to
     whole pixels (0.2-0.4 px RMS on a flat wall).  The D455's ASIC, too, refines the disparity
     after its semi-global pass."""
-    left = left_u8.astype(np.float32)
-    right = right_u8.astype(np.float32)
-    height, width = left.shape
-    valid = np.isfinite(disparity)
-    if not valid.any():
-        return disparity
-    import cv2  # here: importing sim.sensor does not need OpenCV
-
-    whole = np.where(valid, np.rint(disparity), 0).astype(np.int64)
-    costs = np.full((3, height, width), np.inf, dtype=np.float32)
-    window = (config.subpixel_window_px, config.subpixel_window_px)
-    low, high = int(whole[valid].min()) - 1, int(whole[valid].max()) + 1
-    for shift in range(low, high + 1):
-        near = valid & (np.abs(whole - shift) <= 1)
-        if not near.any():
-            continue
-        shifted = np.full_like(right, np.nan)  # right image moved by `shift` px: column x holds right[x - shift]
-        if shift >= 0:
-            shifted[:, shift:] = right[:, : width - shift]
-        else:
-            shifted[:, : width + shift] = right[:, -shift:]
-        squared = (left - shifted) ** 2
-        outside = ~np.isfinite(squared)
-        squared[outside] = 0.0
-        cost = cv2.boxFilter(squared, -1, window, normalize=False, borderType=cv2.BORDER_REPLICATE)
-        touches = cv2.boxFilter(outside.astype(np.float32), -1, window, normalize=False, borderType=cv2.BORDER_REPLICATE)
-        cost[touches > 0.0] = np.inf
-        for k in (-1, 0, 1):
-            at = near & (whole + k == shift)
-            costs[k + 1][at] = cost[at]
-    below, centre, above = costs
-    with np.errstate(invalid="ignore"):
-        curvature = below + above - 2.0 * centre
-        fit = valid & np.isfinite(below) & np.isfinite(above) & (curvature > 0.0)
-        offset = np.where(fit, (below - above) / np.where(fit, 2.0 * curvature, 1.0), 0.0)
-    refined = np.where(fit, whole + np.clip(offset, -0.5, 0.5), np.nan).astype(np.float32)
     # The parabola's curvature is twice the window's squared intensity gradient along the
     # baseline: too little, and the match is the noise's, not the surface's.
-    pixels = config.subpixel_window_px**2
-    with np.errstate(invalid="ignore"):
-        textured = curvature >= 2.0 * pixels * config.min_texture_levels_px**2
-    return np.where(textured, refined, np.nan).astype(np.float32)
+    min_curvature = 2.0 * config.subpixel_window_px**2 * config.min_texture_levels_px**2
+    return _refine_kernel(np.ascontiguousarray(left_u8, dtype=np.uint8), np.ascontiguousarray(right_u8, dtype=np.uint8),
+                          np.ascontiguousarray(disparity, dtype=np.float32), config.subpixel_window_px, np.float32(min_curvature))  # fmt: skip
+
+
+@njit(cache=True, nogil=True)
+def _refine_kernel(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, window: int, min_curvature: np.float32) -> np.ndarray:
+    """Per valid pixel, the window's sums of squared differences at the whole disparity d - 1, d,
+    d + 1 (rows and columns beyond the image repeat its edge; a window reaching past the right
+    image's edge has no cost), in exact integers, then the parabola's vertex.  Cost independent
+    of the disparity range: a near obstacle (wide range) costs what a far wall does."""
+    height, width = left.shape
+    refined = np.full((height, width), np.nan, dtype=np.float32)
+    before = window // 2
+    low, high = np.inf, -np.inf
+    for d in disparity.ravel():
+        if np.isfinite(d):
+            low, high = min(low, d), max(high, d)
+    if low > high:
+        return refined
+    lowest = int(np.rint(low)) - 1
+    shifts = int(np.rint(high)) + 1 - lowest + 1
+    # The window's column sums of squared differences at (shift, column), for the current row:
+    # neighbours at the same disparity share them.  ``row_of`` says which row a sum is for.
+    column_sum = np.zeros((shifts, width), dtype=np.int64)
+    row_of = np.full((shifts, width), -1, dtype=np.int64)
+    costs = np.zeros(3, dtype=np.int64)  # at whole - 1, whole, whole + 1: exact integers
+    for y in range(height):
+        for x in range(width):
+            d = disparity[y, x]
+            if not np.isfinite(d):
+                continue
+            whole = int(np.rint(d))
+            # The window's columns (the image's edge repeated) and the right image's columns they
+            # meet at the largest and smallest of the three disparities: all inside, or no cost.
+            first, last = max(x - before, 0), min(x - before + window - 1, width - 1)
+            if first - (whole + 1) < 0 or last - (whole - 1) >= width:
+                continue
+            costs[:] = 0
+            for dx in range(-before, window - before):
+                xx = min(max(x + dx, 0), width - 1)
+                for k in range(3):
+                    shift = whole + k - 1
+                    at = shift - lowest
+                    if row_of[at, xx] != y:
+                        total = 0
+                        for dy in range(-before, window - before):
+                            yy = min(max(y + dy, 0), height - 1)
+                            diff = np.int64(left[yy, xx]) - np.int64(right[yy, xx - shift])
+                            total += diff * diff
+                        column_sum[at, xx] = total
+                        row_of[at, xx] = y
+                    costs[k] += column_sum[at, xx]
+            below32, centre32, above32 = np.float32(costs[0]), np.float32(costs[1]), np.float32(costs[2])
+            curvature = below32 + above32 - np.float32(2.0) * centre32
+            if curvature <= np.float32(0.0) or curvature < min_curvature:
+                continue
+            offset = (below32 - above32) / (np.float32(2.0) * curvature)
+            offset = min(max(offset, np.float32(-0.5)), np.float32(0.5))
+            refined[y, x] = np.float32(np.float64(whole) + np.float64(offset))
+    return refined
 
 
 def depth_from_disparity(disparity: np.ndarray, config: StereoConfig) -> np.ndarray:

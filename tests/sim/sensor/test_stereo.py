@@ -151,3 +151,57 @@ def test_matching_runs_at_half_the_d455_resolution_on_the_gray_cameras_rays():
     assert math.isclose(d455.fx_px, 446.8, abs_tol=0.1)
     gray = CameraModel()  # the sim's gray camera: same pinhole, half the pixels again
     assert math.isclose(D455.camera.fx_px, 2.0 * gray.fx_px, rel_tol=1e-12)
+
+
+def _refine_subpixel_reference(left_u8, right_u8, disparity, config):
+    """The subpixel fit as first written (whole-image box filters, one per disparity in the
+    range): the reference the compiled kernel must equal, pixel for pixel."""
+    import cv2
+
+    left, right = left_u8.astype(np.float32), right_u8.astype(np.float32)
+    height, width = left.shape
+    valid = np.isfinite(disparity)
+    whole = np.where(valid, np.rint(disparity), 0).astype(np.int64)
+    costs = np.full((3, height, width), np.inf, dtype=np.float32)
+    window = (config.subpixel_window_px, config.subpixel_window_px)
+    for shift in range(int(whole[valid].min()) - 1, int(whole[valid].max()) + 2):
+        near = valid & (np.abs(whole - shift) <= 1)
+        shifted = np.full_like(right, np.nan)
+        if shift >= 0:
+            shifted[:, shift:] = right[:, : width - shift]
+        else:
+            shifted[:, : width + shift] = right[:, -shift:]
+        squared = (left - shifted) ** 2
+        outside = ~np.isfinite(squared)
+        squared[outside] = 0.0
+        cost = cv2.boxFilter(squared, -1, window, normalize=False, borderType=cv2.BORDER_REPLICATE)
+        touches = cv2.boxFilter(outside.astype(np.float32), -1, window, normalize=False, borderType=cv2.BORDER_REPLICATE)
+        cost[touches > 0.0] = np.inf
+        for k in (-1, 0, 1):
+            at = near & (whole + k == shift)
+            costs[k + 1][at] = cost[at]
+    below, centre_cost, above = costs
+    with np.errstate(invalid="ignore"):
+        curvature = below + above - 2.0 * centre_cost
+        fit = valid & np.isfinite(below) & np.isfinite(above) & (curvature > 0.0)
+        offset = np.where(fit, (below - above) / np.where(fit, 2.0 * curvature, 1.0), 0.0)
+        textured = curvature >= 2.0 * config.subpixel_window_px**2 * config.min_texture_levels_px**2
+    refined = np.where(fit, whole + np.clip(offset, -0.5, 0.5), np.nan).astype(np.float32)
+    return np.where(textured, refined, np.nan).astype(np.float32)
+
+
+@pytest.mark.parametrize("config", [D455, D455_PROJECTOR_OFF], ids=["projector on", "projector off"])
+@pytest.mark.parametrize("distance_m", [0.8, 3.0, 9.0])
+def test_the_compiled_subpixel_fit_equals_the_box_filter_one(config, distance_m):
+    """A near box (the widest disparity range, where the box-filter fit was slowest) in front of
+    the far wall: the kernel's refined disparity is the reference's, NaNs included."""
+    from sim.sensor.ir import render_ir_pair
+    from sim.sensor.matching import disparity_px, refine_subpixel
+
+    world = room([((ROOM_LENGTH_M - distance_m + 0.6, 3.6, 3.0), (0.05, 0.3, 0.5))])  # a slab 0.6 m ahead
+    pair = render_ir_pair(world, facing_far_wall(distance_m), LOOK_ALONG_X, config, torch.Generator().manual_seed(3))
+    left, right = pair.left_u8[0].numpy(), pair.right_u8[0].numpy()
+    disparity = disparity_px(left, right, config)
+    assert np.isfinite(disparity).mean() > 0.2
+    np.testing.assert_array_equal(refine_subpixel(left, right, disparity, config),
+                                  _refine_subpixel_reference(left, right, disparity, config))  # fmt: skip

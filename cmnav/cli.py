@@ -285,14 +285,22 @@ def _cmd_eval_policy(args: argparse.Namespace) -> int:
 
 
 def _cmd_pipeline(args: argparse.Namespace) -> int:
-    from cmnav.pipeline import PipelineConfig, run_pipeline
+    from cmnav.pipeline import PipelineConfig, load_recipe, run_pipeline, run_recipe
 
-    config = PipelineConfig(
-        out_dir=args.out, minutes=args.minutes, dataset=args.dataset, call_minutes=args.call_minutes,
-        **_given(args, "device", "seed", "dataset_count", "encoder_size", "encoder_batch_size", "policy_size", "envs",
-                 "teacher_envs", "eval_episodes", "eval_levels"),
-    )  # fmt: skip
-    summary = run_pipeline(config, sys.argv[1:])
+    paper_options = _given(args, "device", "seed", "dataset_count", "encoder_size", "encoder_batch_size", "policy_size",
+                           "envs", "teacher_envs", "eval_episodes", "eval_levels")  # fmt: skip
+    if args.recipe is not None:
+        if given := [name for name, value in (("--minutes", args.minutes), ("--dataset", args.dataset)) if value is not None] + [
+            "--" + k.replace("_", "-") for k in paper_options
+        ]:  # fmt: skip
+            raise ValueError(f"{', '.join(given)} set the paper's recipe; with --recipe the recipe's stages say everything: drop them")
+        summary = run_recipe(load_recipe(args.recipe, args.out), args.out, args.call_minutes, sys.argv[1:])
+    else:
+        if args.minutes is None:
+            raise ValueError("the paper's recipe needs --minutes (its wall-clock budget), or give --recipe")
+        summary = run_pipeline(PipelineConfig(
+            out_dir=args.out, minutes=args.minutes, dataset=args.dataset, call_minutes=args.call_minutes, **paper_options,
+        ), sys.argv[1:])  # fmt: skip
     if not summary["done"]:
         print(f"pipeline paused after this call's {args.call_minutes} min (spent so far: {summary['spent_s']}); "
               "run the same command again to continue")  # fmt: skip
@@ -768,15 +776,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     pipeline = sub.add_parser(
         "pipeline",
-        help="dataset -> encoder (S2) -> Table I -> teacher -> student -> Table II -> export, within a time budget",
-        description="The one-command training run for a GPU machine with only torch, onnx, onnxruntime and numpy: "
-        "renders a dataset, trains the CMWAE (S2), the privileged teacher (PPO) and the student (DAgger) on "
-        "shares of the --minutes budget (35%%, 30%% and 25%%), evaluates Table I, the teacher's and the "
+        help="a training recipe run stage by stage, resumable: the paper's (within --minutes) or --recipe's",
+        description="Without --recipe, the paper's recipe for a GPU machine with only torch, onnx, onnxruntime and "
+        "numpy: renders a dataset, trains the CMWAE (S2), the privileged teacher (PPO) and the student (DAgger) "
+        "on shares of the --minutes budget (35%%, 30%% and 25%%), evaluates Table I, the teacher's and the "
         "student's Table II, exports model.onnx, and writes MODEL_CARD.md and pipeline.json in --out.  "
-        "Checkpoints are fp16 shards <= 15 MiB.",
+        "Checkpoints are fp16 shards <= 15 MiB.  With --recipe, the stages of a recipe file (cmnav commands, "
+        "each training stage with its minutes), each a process logging to OUT/logs/STAGE.log; MODEL_CARD.md "
+        "lists the stages and their wall-clock.  Either continues where a stopped call left off.",
     )
     pipeline.add_argument("--out", required=True, help="output directory")
-    pipeline.add_argument("--minutes", type=float, required=True, help="wall-clock budget")
+    pipeline.add_argument("--recipe", help="a recipe: a name (cmnav/recipes/NAME.toml: default makes the "
+                          "shipped models from nothing) or a .toml file")  # fmt: skip
+    pipeline.add_argument("--minutes", type=float, help="the paper's recipe: its wall-clock budget")
     _config_option(pipeline, "--device", "cmnav.pipeline:PipelineConfig.device", help="cuda or cpu")
     _config_option(pipeline, "--seed", "cmnav.pipeline:PipelineConfig.seed", type=int, help="random seed")
     _config_option(pipeline, "--dataset-count", "cmnav.pipeline:PipelineConfig.dataset_count", type=int, help="gray/depth pairs to render")

@@ -21,14 +21,19 @@ and the rest take what they take (small next to training at the default sizes).
 A machine that limits one command's run time (the lent GPU machine: 10 min) runs it in several
 calls: ``call_minutes`` stops a call cleanly, ``OUT/pipeline_state.json`` records the finished
 stages and the time spent, and the same command continues where the last call stopped.
+
+``--recipe`` runs a recipe instead (:func:`load_recipe`, ``cmnav/recipes/*.toml``): stages of
+`cmnav` commands run as processes by the same :class:`StageRunner`; ``recipes/default.toml`` is the
+chain of commands behind the shipped models.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import platform
 import shlex
+import signal
+import subprocess
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -43,6 +48,64 @@ BUDGET_SHARES = {"encoder": 0.35, "teacher": 0.30, "policy": 0.25}
 # Time kept back at the end of a call for the checkpoint a training stage writes when it stops:
 # this much, or a tenth of a short call.
 CALL_RESERVE_S = 30.0
+
+
+class StageRunner:
+    """Runs a pipeline's named stages once each, across as many calls as it takes.
+
+    ``OUT/pipeline_state.json`` records the finished stages, the wall-clock each has spent and what
+    each returned.  A stage with a time budget gets what is left of it; a resumable one is also cut
+    to what is left of this call (``call_minutes``) and continues (``resume=True``) in the next.
+    """
+
+    def __init__(self, out: Path, settings: dict, call_minutes: float | None):
+        out.mkdir(parents=True, exist_ok=True)
+        self.path = out / "pipeline_state.json"
+        self.state = json.loads(self.path.read_text()) if self.path.is_file() else {"done": [], "spent_s": {}, "results": {}}
+        if self.state.setdefault("config", settings) != settings:
+            held = self.state["config"]
+            differ = sorted(k for k in held.keys() | settings.keys() if held.get(k) != settings.get(k))
+            raise ValueError(f"{out} holds a pipeline run with other settings (differing: {', '.join(differ)}): use a new --out")
+        self.path.write_text(json.dumps(self.state, indent=2, default=str))
+        self.call_end = time.monotonic() + (call_minutes * 60.0 if call_minutes else float("inf"))
+        self.reserve_s = min(CALL_RESERVE_S, 6.0 * call_minutes) if call_minutes else CALL_RESERVE_S
+
+    def run(self, name: str, work, budget_s: float | None = None, resumable: bool | None = None) -> bool:
+        """Run stage ``name`` unless done: ``work(limit_s, resume)`` with ``limit_s`` what is left
+        of ``budget_s`` cut, when ``resumable`` (default: when it has a budget), to what is left of
+        this call (None: no limit).  Returns False when this call must stop before it is finished."""
+        if name in self.state["done"]:
+            return True
+        resumable = budget_s is not None if resumable is None else resumable
+        spent = self.state["spent_s"].get(name, 0.0)
+        stage_left = None if budget_s is None else budget_s - spent
+        call_left = self.call_end - time.monotonic() - self.reserve_s if resumable and self.call_end < float("inf") else None
+        limit_s = min((x for x in (stage_left, call_left) if x is not None), default=None)
+        if limit_s is not None and limit_s <= 0:
+            log.info("pipeline: this call's time is up before %s; run the same command again to continue", name)
+            return False
+        log.info("pipeline stage %s (time limit %s)", name, "none" if limit_s is None else f"{limit_s:.0f} s")
+        t0 = time.monotonic()
+        try:
+            result = work(limit_s, resume=resumable and spent > 0)
+        except BaseException:  # failed or stopped: the time counts, and a resumable stage continues what it wrote
+            self.state["spent_s"][name] = round(spent + time.monotonic() - t0, 1)
+            self.path.write_text(json.dumps(self.state, indent=2, default=str))
+            raise
+        elapsed = time.monotonic() - t0
+        self.state["spent_s"][name] = round(spent + elapsed, 1)
+        if result is not None:
+            self.state["results"][name] = result
+        # Finished unless the call's limit stopped it: it had no limit, it ended on its own before
+        # the limit, or its own budget is spent.
+        finished = (limit_s is None or elapsed < limit_s - self.reserve_s
+                    or (budget_s is not None and spent + elapsed >= budget_s - self.reserve_s))  # fmt: skip
+        if finished:
+            self.state["done"].append(name)
+        self.path.write_text(json.dumps(self.state, indent=2, default=str))
+        if not finished:
+            log.info("pipeline: this call's time is up during %s; run the same command again to continue", name)
+        return finished
 
 
 @dataclass(frozen=True)
@@ -88,40 +151,11 @@ def run_pipeline(config: PipelineConfig, argv: list[str] | None = None) -> dict:
 
     config.validate()
     out = Path(config.out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    state_path = out / "pipeline_state.json"
-    state = json.loads(state_path.read_text()) if state_path.is_file() else {"done": [], "spent_s": {}, "results": {}}
     settings = json.loads(json.dumps({k: v for k, v in asdict(config).items() if k != "call_minutes"}))
-    if state.setdefault("config", settings) != settings:
-        raise ValueError(f"{out} holds a pipeline run with other settings ({state['config']}): use a new --out")
+    stages_run = StageRunner(out, settings, config.call_minutes)
     budget_s = config.minutes * 60.0
-    call_end = time.monotonic() + (config.call_minutes * 60.0 if config.call_minutes else float("inf"))
-    reserve_s = min(CALL_RESERVE_S, 6.0 * config.call_minutes) if config.call_minutes else CALL_RESERVE_S
     data_dir = Path(config.dataset) if config.dataset else out / "data"
     encoder_dir, teacher_dir, policy_dir = out / "encoder", out / "teacher", out / "policy"
-
-    def run(name: str, work, budget_share: float | None = None) -> bool:
-        """Run stage ``name`` unless done; a training stage gets what is left of its share of the
-        budget, cut to what is left of this call.  Returns False when the call must stop."""
-        if name in state["done"]:
-            return True
-        spent = state["spent_s"].get(name, 0.0)
-        limit_s = None
-        if budget_share is not None:
-            limit_s = min(budget_share * budget_s - spent, call_end - time.monotonic() - reserve_s)
-            if limit_s <= 0:
-                return False
-        log.info("pipeline stage %s (time limit %s)", name, "none" if limit_s is None else f"{limit_s:.0f} s")
-        t0 = time.monotonic()
-        result = work(limit_s, resume=spent > 0)
-        state["spent_s"][name] = round(spent + time.monotonic() - t0, 1)
-        if result is not None:
-            state["results"][name] = result
-        finished = budget_share is None or state["spent_s"][name] >= budget_share * budget_s - reserve_s
-        if finished:
-            state["done"].append(name)
-        state_path.write_text(json.dumps(state, indent=2, default=str))
-        return finished
 
     def dataset(limit_s, resume):
         return generate_dataset(data_dir, DatasetSpec(count=config.dataset_count, seed=config.seed))
@@ -172,12 +206,11 @@ def run_pipeline(config: PipelineConfig, argv: list[str] | None = None) -> dict:
     if config.dataset is not None:
         stages = stages[1:]
     for name, work, share in stages:
-        if not run(name, work, share):
-            log.info("pipeline: this call's time is up during %s; run the same command again to continue", name)
-            return {"done": False, "spent_s": state["spent_s"], "out_dir": str(out)}
-    results = state["results"]
+        if not stages_run.run(name, work, None if share is None else share * budget_s):
+            return {"done": False, "spent_s": stages_run.state["spent_s"], "out_dir": str(out)}
+    results = stages_run.state["results"]
     summary = {"done": True, "config": asdict(config), "command": "cmnav " + shlex.join(argv or []),
-               "hardware": _hardware(config.device), "timings_s": state["spent_s"], "table1": results["table1"],
+               "hardware": _hardware(config.device), "timings_s": stages_run.state["spent_s"], "table1": results["table1"],
                "teacher_table2": results["teacher_table2"], "table2": results["table2"], "export": results["export"],
                "out_dir": str(out)}  # fmt: skip
     (out / "pipeline.json").write_text(json.dumps(summary, indent=2, default=str))
@@ -187,7 +220,11 @@ def run_pipeline(config: PipelineConfig, argv: list[str] | None = None) -> dict:
 
 
 def _hardware(device: str) -> str:
-    cpu = f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} torch threads"
+    from bench.train import cpu_name
+    from training.fastpath import read_cpu_flags
+
+    fast = sorted(read_cpu_flags() & {"amx_bf16", "avx512_bf16", "avx512_vnni", "avx2"})
+    cpu = f"{cpu_name()} ({', '.join(fast) or 'no AVX2'}), {torch.get_num_threads()} torch threads"
     if device.startswith("cuda") and torch.cuda.is_available():
         return f"{torch.cuda.get_device_name(0)} x{torch.cuda.device_count()}; CPU {cpu}; torch {torch.__version__}"
     return f"CPU only ({cpu}); torch {torch.__version__}"
@@ -226,3 +263,168 @@ The teacher (clean depth only: its upper bound):
 
 {teacher_table2_md}
 """
+
+
+# --- recipes: a pipeline of `cmnav` commands ------------------------------------------------------
+
+RECIPES_DIR = Path(__file__).parent / "recipes"
+RECIPE_KEYS = {"description", "stage"}
+STAGE_KEYS = {"name", "command", "minutes", "continues", "report"}
+
+
+@dataclass(frozen=True)
+class RecipeStage:
+    name: str
+    argv: tuple[str, ...]  # a `cmnav` command line, ``{out}`` already replaced by the run's directory
+    minutes: float | None = None  # a training stage's budget: it gets --minutes (what is left of it)
+    resumable: bool = False  # its command takes --resume: a call's limit may stop it, the next continues it
+    continues: str | None = None  # the earlier stage whose run (the same --out) it continues: always --resume
+    report: str | None = None  # a markdown file it writes that the model card includes
+
+
+@dataclass(frozen=True)
+class Recipe:
+    name: str
+    description: str
+    text: str  # the recipe file as read: a run continues only under the same recipe
+    stages: tuple[RecipeStage, ...]
+
+
+def recipe_names() -> list[str]:
+    return sorted(p.stem for p in RECIPES_DIR.glob("*.toml"))
+
+
+def load_recipe(recipe: str, out_dir: str | Path) -> Recipe:
+    """A recipe by name (``cmnav/recipes/NAME.toml``) or path: stages of `cmnav` commands, each
+    checked against the command's parser before anything runs."""
+    import tomllib
+
+    from cmnav.cli import build_parser
+
+    path = Path(recipe) if recipe.endswith(".toml") else RECIPES_DIR / f"{recipe}.toml"
+    if not path.is_file():
+        raise ValueError(f"no recipe {recipe!r} ({path}): give a .toml file or one of {recipe_names()}")
+    text = path.read_text()
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ValueError(f"recipe {path} is not valid TOML: {err}") from err
+    if unknown := sorted(set(data) - RECIPE_KEYS):
+        raise ValueError(f"recipe {path}: unknown keys {unknown} (known: {sorted(RECIPE_KEYS)})")
+    if not data.get("stage"):
+        raise ValueError(f"recipe {path} has no [[stage]]: add the commands it runs")
+    stages, parser = [], build_parser()
+    for i, raw in enumerate(data["stage"]):
+        where = f"recipe {path}, stage {i + 1} ({raw.get('name', 'unnamed')})"
+        if unknown := sorted(set(raw) - STAGE_KEYS):
+            raise ValueError(f"{where}: unknown keys {unknown} (known: {sorted(STAGE_KEYS)})")
+        if not isinstance(raw.get("name"), str) or not isinstance(raw.get("command"), str):
+            raise ValueError(f"{where}: needs a name and a command (strings)")
+        try:
+            argv = tuple(part.format(out=out_dir) for part in shlex.split(raw["command"]))
+            report = None if raw.get("report") is None else raw["report"].format(out=out_dir)
+        except (KeyError, IndexError, ValueError) as err:
+            raise ValueError(f"{where}: only {{out}} (the run's directory) may be filled in: {err!r}") from err
+        minutes = raw.get("minutes")
+        if minutes is not None and (not isinstance(minutes, (int, float)) or minutes <= 0):
+            raise ValueError(f"{where}: minutes {minutes!r} must be a number > 0")
+        if set(argv) & {"--minutes", "--resume"}:
+            raise ValueError(f"{where}: the pipeline gives --minutes and --resume itself: use the stage's minutes and continues")
+        if raw["name"] in {s.name for s in stages}:
+            raise ValueError(f"{where}: the name {raw['name']!r} is used twice")
+        try:  # argparse exits on a bad command line: a typo must not wait hours for its stage
+            parsed = parser.parse_args(list(argv))
+        except SystemExit:
+            raise ValueError(f"{where}: `cmnav {shlex.join(argv)}` is not a valid cmnav command (see the message above)") from None
+        resumable = hasattr(parsed, "resume")
+        if (minutes is not None or raw.get("continues")) and not (resumable and hasattr(parsed, "minutes")):
+            raise ValueError(f"{where}: minutes and continues are for training commands (they take --minutes and --resume)")
+        if (continues := raw.get("continues")) is not None:
+            earlier = {s.name: s for s in stages}.get(continues)
+            if earlier is None or _out_of(earlier.argv) != _out_of(argv):
+                raise ValueError(f"{where}: continues {continues!r}, which must be an earlier stage with the same --out")
+        stages.append(RecipeStage(raw["name"], argv, None if minutes is None else float(minutes), resumable, continues, report))
+    return Recipe(path.stem, str(data.get("description", "")).strip(), text, tuple(stages))
+
+
+def _out_of(argv: tuple[str, ...]) -> str | None:
+    return next((argv[i + 1] for i in range(len(argv) - 1) if argv[i] in ("--out", "-o")), None)
+
+
+def _stage_argv(stage: RecipeStage, limit_s: float | None, resume: bool) -> list[str]:
+    return [*stage.argv, *(["--minutes", f"{limit_s / 60.0:.3f}"] if limit_s is not None else []), *(["--resume"] if resume else [])]
+
+
+def run_recipe(recipe: Recipe, out_dir: str | Path, call_minutes: float | None = None, argv: list[str] | None = None) -> dict:
+    """Run (or continue) ``recipe`` in ``out_dir``, each stage a `cmnav` process whose output goes
+    to ``OUT/logs/STAGE.log``.  Returns the summary; ``done`` is False when ``call_minutes`` stopped
+    it first (the same command continues).  A stage that fails stops the run: what it wrote stays,
+    and the same command retries it."""
+    out = Path(out_dir)
+    runner = StageRunner(out, {"recipe": recipe.name, "recipe_text": recipe.text}, call_minutes)
+    (out / "logs").mkdir(exist_ok=True)
+
+    def command(stage: RecipeStage):
+        def work(limit_s, resume):
+            stage_argv = _stage_argv(stage, limit_s, resume or stage.continues is not None)
+            log_path = out / "logs" / f"{stage.name}.log"
+            with log_path.open("a") as log_file:
+                log_file.write(f"$ cmnav {shlex.join(stage_argv)}\n")
+                log_file.flush()
+                proc = subprocess.Popen([sys.executable, "-m", "cmnav", *stage_argv], stdout=log_file, stderr=subprocess.STDOUT)
+                try:
+                    rc = proc.wait()
+                except BaseException:  # the pipeline stopped (SIGTERM, Ctrl-C): its stage stops with it
+                    proc.terminate()
+                    proc.wait()
+                    raise
+            if rc != 0:
+                tail = "".join(log_path.read_text().splitlines(keepends=True)[-5:])
+                raise ValueError(f"stage {stage.name} failed (exit {rc}); its log {log_path} ends:\n{tail}"
+                                 "fix the cause and run the same command again: it retries this stage")  # fmt: skip
+            return {"argv": stage_argv}
+
+        return work
+
+    previous = signal.signal(signal.SIGTERM, _exit_on_sigterm)  # a stopped pipeline stops its stage's process
+    try:
+        for stage in recipe.stages:
+            budget_s = None if stage.minutes is None else stage.minutes * 60.0
+            if not runner.run(stage.name, command(stage), budget_s, stage.resumable):
+                return {"done": False, "spent_s": runner.state["spent_s"], "out_dir": str(out)}
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    summary = {"done": True, "recipe": recipe.name, "command": "cmnav " + shlex.join(argv or []),
+               "hardware": _hardware("cuda" if torch.cuda.is_available() else "cpu"), "timings_s": runner.state["spent_s"],
+               "out_dir": str(out),
+               "stages": [{"name": s.name, "command": "cmnav " + shlex.join(s.argv), "minutes": s.minutes,
+                           "wall_s": runner.state["spent_s"][s.name]} for s in recipe.stages]}  # fmt: skip
+    (out / "pipeline.json").write_text(json.dumps(summary, indent=2, default=str))
+    (out / "MODEL_CARD.md").write_text(recipe_card(recipe, summary))
+    log.info("pipeline done: %s", out)
+    return summary
+
+
+def _exit_on_sigterm(signum, frame):
+    raise SystemExit(128 + signum)
+
+
+def recipe_card(recipe: Recipe, summary: dict) -> str:
+    rows = "\n".join(f"| {s['name']} | `{s['command']}` | {'' if s['minutes'] is None else format(s['minutes'], 'g')} | "
+                     f"{s['wall_s'] / 60.0:.1f} |" for s in summary["stages"])  # fmt: skip
+    total_min = sum(s["wall_s"] for s in summary["stages"]) / 60.0
+    reports = "".join(f"\n## {s.name}\n\n{Path(s.report).read_text().strip()}\n" for s in recipe.stages
+                      if s.report is not None and Path(s.report).is_file())  # fmt: skip
+    return f"""# cmnav models from `cmnav pipeline --recipe {recipe.name}`
+
+{recipe.description}
+
+Made by `{summary['command']}` on {summary['hardware']} (Python {sys.version.split()[0]}), all
+stages in {total_min:.0f} min of wall-clock (summed over the calls it took).
+
+## Stages
+
+| stage | command | budget (min) | wall-clock (min) |
+|---|---|---|---|
+{rows}
+{reports}"""

@@ -294,7 +294,7 @@ def _cmd_pipeline(args: argparse.Namespace) -> int:
             "--" + k.replace("_", "-") for k in paper_options
         ]:  # fmt: skip
             raise ValueError(f"{', '.join(given)} set the paper's recipe; with --recipe the recipe's stages say everything: drop them")
-        summary = run_recipe(load_recipe(args.recipe, args.out), args.out, args.call_minutes, sys.argv[1:])
+        summary = run_recipe(load_recipe(args.recipe, args.out, build_parser()), args.out, args.call_minutes, sys.argv[1:])
     else:
         if args.minutes is None:
             raise ValueError("the paper's recipe needs --minutes (its wall-clock budget), or give --recipe")

@@ -29,6 +29,7 @@ chain of commands behind the shipped models.
 
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import shlex
@@ -294,12 +295,10 @@ def recipe_names() -> list[str]:
     return sorted(p.stem for p in RECIPES_DIR.glob("*.toml"))
 
 
-def load_recipe(recipe: str, out_dir: str | Path) -> Recipe:
+def load_recipe(recipe: str, out_dir: str | Path, parser: argparse.ArgumentParser) -> Recipe:
     """A recipe by name (``cmnav/recipes/NAME.toml``) or path: stages of `cmnav` commands, each
-    checked against the command's parser before anything runs."""
+    checked against ``parser`` (cmnav's, :func:`cmnav.cli.build_parser`) before anything runs."""
     import tomllib
-
-    from cmnav.cli import build_parser
 
     path = Path(recipe) if recipe.endswith(".toml") else RECIPES_DIR / f"{recipe}.toml"
     if not path.is_file():
@@ -313,7 +312,7 @@ def load_recipe(recipe: str, out_dir: str | Path) -> Recipe:
         raise ValueError(f"recipe {path}: unknown keys {unknown} (known: {sorted(RECIPE_KEYS)})")
     if not data.get("stage"):
         raise ValueError(f"recipe {path} has no [[stage]]: add the commands it runs")
-    stages, parser = [], build_parser()
+    stages: list[RecipeStage] = []
     for i, raw in enumerate(data["stage"]):
         where = f"recipe {path}, stage {i + 1} ({raw.get('name', 'unnamed')})"
         if unknown := sorted(set(raw) - STAGE_KEYS):

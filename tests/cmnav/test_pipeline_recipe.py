@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from cmnav.cli import build_parser
 from cmnav.pipeline import load_recipe, recipe_names
 
 REPO = Path(__file__).resolve().parents[2]
@@ -126,7 +127,7 @@ def test_a_failing_stage_stops_the_run_and_names_its_log(tmp_path):
 def test_the_shipped_recipes_are_valid(tmp_path):
     assert recipe_names(), "cmnav/recipes holds no recipe"
     for name in recipe_names():
-        recipe = load_recipe(name, tmp_path)  # every command parses; placeholders are known
+        recipe = load_recipe(name, tmp_path, build_parser())  # every command parses; placeholders are known
         assert recipe.description and recipe.stages
         assert all(str(tmp_path) in " ".join(s.argv) for s in recipe.stages if "--out" in s.argv or "-o" in s.argv)
 

@@ -88,7 +88,7 @@ class StageRunner:
         log.info("pipeline stage %s (time limit %s)", name, "none" if limit_s is None else f"{limit_s:.0f} s")
         t0 = time.monotonic()
         try:
-            result = work(limit_s, resume=resumable and spent > 0)
+            result = work(limit_s, resume=resumable and name in self.state["spent_s"])  # it ran before
         except BaseException:  # failed or stopped: the time counts, and a resumable stage continues what it wrote
             self.state["spent_s"][name] = round(spent + time.monotonic() - t0, 1)
             self.path.write_text(json.dumps(self.state, indent=2, default=str))

@@ -67,7 +67,7 @@ class StageRunner:
             held = self.state["config"]
             differ = sorted(k for k in held.keys() | settings.keys() if held.get(k) != settings.get(k))
             raise ValueError(f"{out} holds a pipeline run with other settings (differing: {', '.join(differ)}): use a new --out")
-        self.path.write_text(json.dumps(self.state, indent=2, default=str))
+        self._save()
         self.call_end = time.monotonic() + (call_minutes * 60.0 if call_minutes else float("inf"))
         self.reserve_s = min(CALL_RESERVE_S, 6.0 * call_minutes) if call_minutes else CALL_RESERVE_S
 
@@ -89,12 +89,10 @@ class StageRunner:
         t0 = time.monotonic()
         try:
             result = work(limit_s, resume=resumable and name in self.state["spent_s"])  # it ran before
-        except BaseException:  # failed or stopped: the time counts, and a resumable stage continues what it wrote
-            self.state["spent_s"][name] = round(spent + time.monotonic() - t0, 1)
-            self.path.write_text(json.dumps(self.state, indent=2, default=str))
-            raise
-        elapsed = time.monotonic() - t0
-        self.state["spent_s"][name] = round(spent + elapsed, 1)
+        finally:  # failed or stopped too: the time counts, and a resumable stage continues what it wrote
+            elapsed = time.monotonic() - t0
+            self.state["spent_s"][name] = round(spent + elapsed, 1)
+            self._save()
         if result is not None:
             self.state["results"][name] = result
         # Finished unless the call's limit stopped it: it had no limit, it ended on its own before
@@ -103,10 +101,13 @@ class StageRunner:
                     or (budget_s is not None and spent + elapsed >= budget_s - self.reserve_s))  # fmt: skip
         if finished:
             self.state["done"].append(name)
-        self.path.write_text(json.dumps(self.state, indent=2, default=str))
+        self._save()
         if not finished:
             log.info("pipeline: this call's time is up during %s; run the same command again to continue", name)
         return finished
+
+    def _save(self) -> None:
+        self.path.write_text(json.dumps(self.state, indent=2, default=str))
 
 
 @dataclass(frozen=True)
@@ -381,7 +382,6 @@ def run_recipe(recipe: Recipe, out_dir: str | Path, call_minutes: float | None =
                 tail = "".join(log_path.read_text().splitlines(keepends=True)[-5:])
                 raise ValueError(f"stage {stage.name} failed (exit {rc}); its log {log_path} ends:\n{tail}"
                                  "fix the cause and run the same command again: it retries this stage")  # fmt: skip
-            return {"argv": stage_argv}
 
         return work
 

@@ -12,6 +12,7 @@ import pytest
 
 from cmnav.cli import build_parser
 from cmnav.pipeline import load_recipe, recipe_names
+from tests.e2e.test_sitl_stop import _children
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -132,17 +133,6 @@ def test_the_shipped_recipes_are_valid(tmp_path):
         assert all(str(tmp_path) in " ".join(s.argv) for s in recipe.stages if "--out" in s.argv or "-o" in s.argv)
 
 
-def _processes_naming(text: str) -> list[int]:
-    pids = []
-    for proc in Path("/proc").iterdir():
-        try:
-            if proc.name.isdigit() and text in (proc / "cmdline").read_bytes().decode(errors="replace"):
-                pids.append(int(proc.name))
-        except OSError:
-            continue
-    return pids
-
-
 def test_a_stopped_pipeline_stops_its_stage(tmp_path):
     recipe = tmp_path / "long.toml"
     recipe.write_text('[[stage]]\nname = "teacher"\nminutes = 10\ncommand = "train teacher --out {out}/teacher '
@@ -152,9 +142,9 @@ def test_a_stopped_pipeline_stops_its_stage(tmp_path):
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)  # fmt: skip
     try:
         deadline = time.monotonic() + 60
-        while not [pid for pid in _processes_naming(f"{out}/teacher") if pid != pipeline.pid] and time.monotonic() < deadline:
+        while not _children(pipeline.pid) and time.monotonic() < deadline:
             time.sleep(0.2)
-        stage_pids = [pid for pid in _processes_naming(f"{out}/teacher") if pid != pipeline.pid]
+        stage_pids = _children(pipeline.pid)
         assert stage_pids, "the teacher stage never started"
         pipeline.terminate()
         assert pipeline.wait(timeout=60) == 143

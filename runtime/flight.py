@@ -240,7 +240,8 @@ class FlightLoop:
         the pilot has the vehicle: nothing sent).  With ``land_site`` and the vehicle stopped, go
         to the landing site (``runtime.watchdog.choose_landing_site``: the point of the way back
         along the path flown nearest ``mission.land_retreat_m`` back that is clear of what the depth
-        frames showed, reached clear of it; the record's ``landing_site``;
+        frames showed, reached clear of it, else the nearest such point of a straight step away from
+        where it stopped; the record's ``landing_site``;
         ``mission.land_site_search_m`` = 0: ``mission.land_retreat_m`` back, unchecked) by
         :meth:`retreat`, and brake again before the Hold (the record's ``retreat``).  With ``land`` and the vehicle stopped, :meth:`descend` instead of the Hold
         (the record's ``descent``); Hold only if it did not reach the ground.  Raises VehicleError
@@ -256,11 +257,11 @@ class FlightLoop:
             if mission.land_site_search_m > 0.0:
                 site = choose_landing_site(way, self._seen, mission.land_retreat_m, mission.land_clearance_m, mission.land_way_clearance_m)
                 (log.info if site.clear else log.warning)("landing site: %s", site)
-                travel_m = site.travel_m
+                path = site.path_enu_m
             else:
-                travel_m = blind_travel_m(way, mission.land_retreat_m)
-            if travel_m > 0.0:
-                retreat = await self.retreat(cut_path(way, travel_m))
+                path = cut_path(way, blind_travel_m(way, mission.land_retreat_m))
+            if len(path) > 1:
+                retreat = await self.retreat(path)
                 if retreat is None or (record := await self._brake()) is None:
                     return None
                 record["retreat"] = retreat
@@ -296,11 +297,12 @@ class FlightLoop:
         return record
 
     async def retreat(self, path_enu_m: np.ndarray) -> dict | None:
-        """Fly ``path_enu_m`` (local ENU m, (N, 3), from where the vehicle is: the way back to the
-        landing site, ``runtime.watchdog.landing_way``), heading unchanged, at the control rate
+        """Fly ``path_enu_m`` (local ENU m, (N, 3), from where the vehicle is: the way to the
+        landing site, ``runtime.watchdog.LandingSite.path_enu_m``), heading unchanged, at the control rate
         (``runtime.watchdog.RetreatTracker``: a reference point moving along it at
         ``RETREAT_SPEED_M_S``, followed with a P term, and an integral where the estimate's velocity
-        is not corrected; slowing down near the end).  Blind but on a path just flown; it ends
+        is not corrected; slowing down near the end).  Blind but on a path just flown (or a step
+        clear of what the camera showed); it ends
         once the vehicle is at the path's end ("arrived"), after twice the time the reference
         needs plus ``RETREAT_TIME_MARGIN_S`` ("timeout"), or when the estimate goes stale
         ("stale_telemetry").  Returns its record {ended, retreated_m, duration_s}, None once the
@@ -315,7 +317,7 @@ class FlightLoop:
         limit_ns = t0_ns + int((2.0 * tracker.length_m / RETREAT_SPEED_M_S + RETREAT_TIME_MARGIN_S) * _NS_PER_S)
         stale_ns = int(self.config.watchdog.telemetry_stale_ms * _NS_PER_MS)
         ended, t_last_ns = "arrived", t0_ns
-        log.info("retreating %.2f m to the landing site along the way back (%d points)", tracker.length_m, len(path))
+        log.info("retreating %.2f m to the landing site (%d points)", tracker.length_m, len(path))
         while len(path) > 1:
             state, now_ns = self.vehicle.state(), time.monotonic_ns()
             elapsed_s = (now_ns - t0_ns) / _NS_PER_S

@@ -345,9 +345,16 @@ def path_point(path: np.ndarray, at_m: np.ndarray, along_m: float) -> np.ndarray
 # (the nearest clear point, 0.1 m median travel) put 4 of 35 PX4 SIH landings into the wall behind
 # the goal: the landing's drift reached the 0.8 m then asked.  A camera that showed nothing leaves
 # nothing to choose by: mission.land_retreat_m back, unchecked.
+# When no point of the way back is clear and reached, a straight step away from where it stopped
+# (LANDING_AWAY_DIRECTIONS headings, up to LANDING_AWAY_MAX_M) is: with the stereo camera on PX4
+# SIH, 2 of 40 flights stopped 0.03-0.1 m from the wall behind the goal with the way back passing
+# an obstacle nearer than mission.land_way_clearance_m, landed where they stopped and drifted into
+# the wall on the way down.
 LANDING_SITE_STEP_M = 0.1  # the candidates' spacing along the way
 LANDING_HEIGHT_MARGIN_M = 0.3  # surfaces seen up to this far above the landing height are in its way
 LANDING_WAY_HEIGHT_MARGIN_M = 0.3  # surfaces seen within the flight height +- this are in the way there
+LANDING_AWAY_DIRECTIONS = 16  # headings of the straight steps away from the stop
+LANDING_AWAY_MAX_M = 1.5  # their longest (m): a step beside the path is blind where the camera did not look
 
 
 def landing_way(flown_enu_m: np.ndarray, stop_enu_m: np.ndarray, back_m: float) -> np.ndarray:
@@ -375,18 +382,61 @@ def blind_travel_m(way_enu_m: np.ndarray, back_m: float) -> float:
 @dataclass(frozen=True)
 class LandingSite:
     """Where to land: ``travel_m`` of horizontal length along the way back (:func:`landing_way`;
-    0: where the vehicle stopped); its clearance to the surfaces seen below it (m; None: none seen)
-    and the least clearance on the way there at the flight height (m; None: none seen), whether
-    both meet what was asked, how many cells of the grid held a surface."""
+    0: where the vehicle stopped) or, with ``away_heading_enu_rad``, along a straight step away
+    from where it stopped at that heading (local ENU, from +x toward +y); its clearance to the
+    surfaces seen below it (m; None: none seen) and the least clearance on the way there at the
+    flight height (m; None: none seen), whether both meet what was asked, how many cells of the
+    grid held a surface; ``path_enu_m`` is the way there (N, 3), where it stopped first."""
 
     travel_m: float
     clearance_m: float | None
     way_clearance_m: float | None
     clear: bool
     surface_cells: int
+    away_heading_enu_rad: float | None = None
+    path_enu_m: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((1, 3)), repr=False, compare=False)
 
     def record(self) -> dict:
-        return asdict(self)
+        return {k: v for k, v in asdict(self).items() if k != "path_enu_m"}
+
+
+@dataclass(frozen=True)
+class _Candidates:
+    """The points every ``LANDING_SITE_STEP_M`` along one way: their travel (m), their clearance
+    below (m), the least clearance on the way to each at the flight height (m), and whether each is
+    reached (:func:`choose_landing_site`)."""
+
+    way: np.ndarray
+    travels_m: np.ndarray
+    below_m: np.ndarray
+    way_least_m: np.ndarray
+    reached: np.ndarray
+
+
+def _candidates(way: np.ndarray, seen: SeenSurfaces, near_cells: np.ndarray, other_cells: np.ndarray, stop_near_m: float,
+                way_clearance_m: float) -> _Candidates:  # fmt: skip
+    at_m = arc_lengths_m(way)
+    travels_m = np.arange(0.0, at_m[-1] + 1e-9, LANDING_SITE_STEP_M)
+    points = np.array([path_point(way, at_m, t)[:2] for t in travels_m])
+    below = seen.clearance_m(points, float(way[0, 2]) + LANDING_HEIGHT_MARGIN_M)
+    from_near, from_others = nearest_m(points, near_cells), nearest_m(points, other_cells)
+    way_least = np.minimum.accumulate(np.minimum(from_near, from_others))
+    # a point is reached if no point before it on the way (itself included) came nearer than that
+    reached = np.logical_and.accumulate((from_others >= way_clearance_m) & (from_near >= stop_near_m - LANDING_SITE_STEP_M))
+    return _Candidates(way, travels_m, below, way_least, reached)
+
+
+def _site(c: _Candidates, k: int, ok: bool, cells: int, heading_rad: float | None) -> LandingSite:
+    travel_m = round(float(c.travels_m[k]), 3)
+    return LandingSite(
+        travel_m=travel_m,
+        clearance_m=round(float(c.below_m[k]), 3) if np.isfinite(c.below_m[k]) else None,
+        way_clearance_m=round(float(c.way_least_m[k]), 3) if np.isfinite(c.way_least_m[k]) else None,
+        clear=ok,
+        surface_cells=cells,
+        away_heading_enu_rad=None if heading_rad is None else round(heading_rad, 3),
+        path_enu_m=cut_path(c.way, travel_m),
+    )
 
 
 def choose_landing_site(way_enu_m: np.ndarray, seen: SeenSurfaces, preferred_back_m: float, clearance_m: float,
@@ -396,34 +446,37 @@ def choose_landing_site(way_enu_m: np.ndarray, seen: SeenSurfaces, preferred_bac
     ``preferred_back_m`` back along the path flown whose clearance to the surfaces seen below it is
     at least ``clearance_m`` and whose way there keeps at least ``way_clearance_m`` from the surfaces
     seen at the flight height (from those already nearer where it stopped: no nearer than there,
-    to a candidate's spacing); else, of those reached so, the clearest.  ``seen`` holding no surface: ``preferred_back_m`` back, unchecked."""
+    to a candidate's spacing).  Else the nearest such point on a straight step away from where it
+    stopped (``LANDING_AWAY_DIRECTIONS`` headings, ``LANDING_AWAY_MAX_M`` at most); else, of the
+    points reached so on either, the clearest.  ``seen`` holding no surface: ``preferred_back_m``
+    back, unchecked."""
     way = np.asarray(way_enu_m, dtype=np.float64).reshape(-1, 3)
-    at_m = arc_lengths_m(way)
     height_z_m = float(way[0, 2])
     preferred_m = blind_travel_m(way, preferred_back_m)
     if len(seen) == 0:
-        return LandingSite(preferred_m, None, None, True, 0)
-    travels_m = np.arange(0.0, at_m[-1] + 1e-9, LANDING_SITE_STEP_M)
-    points = np.array([path_point(way, at_m, t)[:2] for t in travels_m])
-    below = seen.clearance_m(points, height_z_m + LANDING_HEIGHT_MARGIN_M)
+        return LandingSite(preferred_m, None, None, True, 0, path_enu_m=cut_path(way, preferred_m))
     # The surfaces at the flight height: those nearer than way_clearance_m where the vehicle stopped
     # it moves away from (no nearer to them than it was); all others at way_clearance_m at least.
     beside_cells = seen.cells_xy_m(height_z_m + LANDING_WAY_HEIGHT_MARGIN_M, height_z_m - LANDING_WAY_HEIGHT_MARGIN_M)
-    near = nearest_m(beside_cells, points[:1]) < way_clearance_m
-    from_near, from_others = nearest_m(points, beside_cells[near]), nearest_m(points, beside_cells[~near])
-    way_least = np.minimum.accumulate(np.minimum(from_near, from_others))
-    # a point is reached if no point before it on the way (itself included) came nearer than that
-    reached = np.logical_and.accumulate((from_others >= way_clearance_m) & (from_near >= from_near[0] - LANDING_SITE_STEP_M))
-    ok = reached & (below >= clearance_m)
-    order = np.argsort(np.abs(travels_m - preferred_m), kind="stable")
-    best = order[int(np.argmax(ok[order]))] if ok.any() else order[int(np.argmax(np.where(reached[order], below[order], -np.inf)))]
-    return LandingSite(
-        travel_m=round(float(travels_m[best]), 3),
-        clearance_m=round(float(below[best]), 3) if np.isfinite(below[best]) else None,
-        way_clearance_m=round(float(way_least[best]), 3) if np.isfinite(way_least[best]) else None,
-        clear=bool(ok[best]),
-        surface_cells=len(seen),
-    )
+    near = nearest_m(beside_cells, way[:1, :2]) < way_clearance_m
+    near_cells, other_cells = beside_cells[near], beside_cells[~near]
+    stop_near_m = float(nearest_m(way[:1, :2], near_cells)[0])
+    back = _candidates(way, seen, near_cells, other_cells, stop_near_m, way_clearance_m)
+    ok = back.reached & (back.below_m >= clearance_m)
+    if ok.any():
+        order = np.argsort(np.abs(back.travels_m - preferred_m), kind="stable")
+        return _site(back, order[int(np.argmax(ok[order]))], True, len(seen), None)
+    headings = np.arange(LANDING_AWAY_DIRECTIONS) * (2.0 * math.pi / LANDING_AWAY_DIRECTIONS)
+    aways = [_candidates(np.vstack([way[0], way[0] + [LANDING_AWAY_MAX_M * math.cos(h), LANDING_AWAY_MAX_M * math.sin(h), 0.0]]),
+                         seen, near_cells, other_cells, stop_near_m, way_clearance_m) for h in headings]  # fmt: skip
+    # the shortest clear step (of equal ones the clearest below); else the clearest point reached
+    steps = [(c.travels_m[k], -c.below_m[k], i, k) for i, c in enumerate(aways) for k in np.flatnonzero(c.reached & (c.below_m >= clearance_m))]
+    if steps:
+        _, _, i, k = min(steps)
+        return _site(aways[i], k, True, len(seen), float(headings[i]))
+    reached = [(-c.below_m[k], c.travels_m[k], i, k) for i, c in enumerate([back, *aways]) for k in np.flatnonzero(c.reached)]
+    _, _, i, k = min(reached)
+    return _site([back, *aways][i], k, False, len(seen), None if i == 0 else float(headings[i - 1]))
 
 
 def measured_speed_m_s(vehicle: VehicleState) -> float:

@@ -20,7 +20,7 @@ from runtime.contract.camera import depth_points_flu, focal_length_px
 from runtime.contract.constants import CAMERA_HFOV_RAD
 from runtime.contract.frames import quat_from_euler
 from runtime.camera.surfaces import SEEN_CELL_M, SEEN_FLOOR_BAND_M, SEEN_MAX_DEPTH_M, SEEN_MIN_FRAMES, SeenSurfaces
-from runtime.watchdog import choose_landing_site, cut_path, landing_way
+from runtime.watchdog import LANDING_AWAY_MAX_M, choose_landing_site, landing_way
 from sim.camera import CameraModel
 from sim.render import render
 from sim.world import WorldBatch
@@ -121,7 +121,7 @@ def _site(room: WorldBatch, end_x_m: float, overshoot_m: float = 0.4, back_m: fl
     path = np.array([[x, 1.0, 1.5] for x in np.arange(1.0, end_x_m + 1e-9, 0.13)])
     way = landing_way(path, path[-1] + [overshoot_m, 0.0, 0.0], 5.0)
     site = choose_landing_site(way, _seen_along(path, room), back_m, 0.8, way_clearance_m)
-    return site, way, cut_path(way, site.travel_m)[-1]
+    return site, way, site.path_enu_m[-1]
 
 
 def test_the_site_is_the_preferred_one_unless_a_surface_seen_below_is_too_near():
@@ -164,11 +164,37 @@ def test_a_surface_already_near_where_it_stopped_does_not_hold_it_there():
     assert site.clear and point[0] == pytest.approx(6.9 - 1.5, abs=0.07) and site.way_clearance_m < 0.5
 
 
+def test_stopped_at_the_wall_with_the_way_back_past_a_post_it_steps_straight_away():
+    # Stopped 0.2 m from the far wall (x = 8), a tall post 0.3 m beside the path's end: no point of
+    # the way back is both reached and 0.8 m clear (PX4 SIH with the stereo camera landed such
+    # flights where they stopped and drifted into the wall on the way down).
+    room = _room((7.0, 2.8, TALL_M))
+    path = np.array([[x, 2.5, 1.5] for x in np.arange(1.0, 7.45, 0.13)])
+    stop = np.array([7.8, 2.5, 1.5])
+    way = landing_way(path, stop, 5.0)
+    seen = _seen_along(path, room)
+    site = choose_landing_site(way, seen, 1.5, 0.8, 0.5)
+    assert site.clear and site.away_heading_enu_rad is not None, site
+    # a straight step from where it stopped, no longer than it needs, to a point clear of the wall and the post
+    step = site.path_enu_m
+    assert len(step) == 2 and np.allclose(step[0], stop) and np.linalg.norm(step[1] - stop) == pytest.approx(site.travel_m, abs=1e-6)
+    assert 0.6 <= site.travel_m <= LANDING_AWAY_MAX_M and step[1][2] == 1.5
+    assert 8.0 - step[1][0] >= 0.8 - SEEN_CELL_M and np.hypot(*(step[1][:2] - [7.0, 2.8])) >= 0.8 - SEEN_CELL_M
+    # on its way it keeps the clearance asked from the post, which the way back did not
+    along = step[0] + np.linspace(0.0, 1.0, 20)[:, None] * (step[1] - step[0])
+    assert np.hypot(along[:, 0] - 7.0, along[:, 1] - 2.8).min() >= 0.5 - SEEN_CELL_M
+    assert site.record()["away_heading_enu_rad"] == site.away_heading_enu_rad and "path_enu_m" not in site.record()
+    # Without the post the way back is taken, as before.
+    site = choose_landing_site(way, _seen_along(path, _room()), 1.5, 0.8, 0.5)
+    assert site.clear and site.away_heading_enu_rad is None and site.path_enu_m[-1][0] == pytest.approx(7.45 - 1.5, abs=0.15)
+
+
 def test_a_camera_that_showed_nothing_lands_land_retreat_m_back_unchecked():
     path = np.array([[x, 1.0, 1.5] for x in np.arange(1.0, 4.31, 0.13)])
     way = landing_way(path, path[-1] + [0.4, 0.0, 0.0], 5.0)
     site = choose_landing_site(way, SeenSurfaces(), 1.5, 0.8, 0.5)
-    assert site.record() == {"travel_m": pytest.approx(1.9), "clearance_m": None, "way_clearance_m": None, "clear": True, "surface_cells": 0}
+    assert site.record() == {"travel_m": pytest.approx(1.9), "clearance_m": None, "way_clearance_m": None, "clear": True, "surface_cells": 0,
+                             "away_heading_enu_rad": None}
     assert choose_landing_site(way, SeenSurfaces(), 0.0, 0.8, 0.5).travel_m == 0.0  # land_retreat_m = 0: where it stopped
 
 

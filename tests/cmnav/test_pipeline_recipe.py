@@ -76,7 +76,9 @@ def test_a_recipe_runs_to_the_end_over_several_calls(tmp_path):
     assert state["spent_s"]["teacher-slower"] >= 0.3 * 60 - 3  # its whole budget, over two calls
     commands = [line for line in (out / "logs" / "teacher-slower.log").read_text().splitlines() if line.startswith("$ ")]
     assert len(commands) >= 2 and all(c.endswith("--resume") for c in commands)  # it continues the teacher's run
-    assert "--resume" not in (out / "logs" / "teacher.log").read_text()  # which started it, and ended at its --steps
+    # which started it (on a loaded machine the 0.25 min call can cut the teacher too: then it resumes, as it should)
+    teacher = [line for line in (out / "logs" / "teacher.log").read_text().splitlines() if line.startswith("$ ")]
+    assert not teacher[0].endswith("--resume") and all(c.endswith("--resume") for c in teacher[1:]), teacher
     assert "--resume" not in (out / "logs" / "dataset.log").read_text()  # stages without minutes run once, as written
     card = (out / "MODEL_CARD.md").read_text()
     assert "| teacher-slower | `cmnav train teacher --out " in card and "| 0.3 |" in card

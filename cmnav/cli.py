@@ -213,8 +213,11 @@ def _policy_train_config(args: argparse.Namespace, encoder_dir: str | None, corr
 def _cmd_train_policy(args: argparse.Namespace) -> int:
     if args.teacher is not None:
         return _train_student(args)
-    if args.field:
-        print("cmnav train policy: --field trains a student by DAgger: give --teacher TEACHER_DIR", file=sys.stderr)
+    dagger_only = [f"--{name.replace('_', '-')}" for name in ("field", "projector_off_episode_fraction", "squares_episode_fraction",
+                                                             "beta_start", "beta_decay_env_steps", "near_weight")
+                   if getattr(args, name) is not None and getattr(args, name) is not False]  # fmt: skip
+    if dagger_only:
+        print(f"cmnav train policy: {', '.join(dagger_only)} train a student by DAgger: give --teacher TEACHER_DIR", file=sys.stderr)
         return 2
     from training.policy.train import train_policy
 
@@ -232,7 +235,7 @@ def _train_student(args: argparse.Namespace) -> int:
         policy=POLICY_SIZES[args.size], resume=args.resume, init_from=args.init_from,
         max_wall_s=None if args.minutes is None else args.minutes * 60.0,
         **_given(args, "device", "seed", "corruption", "minibatches", "min_level", "max_level", "checkpoint_every", "precision",
-                 "lr", "beta_start", "beta_decay_env_steps", "projector_off_episode_fraction", "near_weight", "near_m",
+                 "lr", "beta_start", "beta_decay_env_steps", "projector_off_episode_fraction", "squares_episode_fraction", "near_weight", "near_m",
                  "vehicle", "end_at_goal", "field_depth", "field_env_fraction", num_envs="envs", outside_teacher_dir="outside_teacher", rollout_steps="rollout", env_steps="steps", field_conditions="field"),
     )  # fmt: skip
     out = train_dagger(config)
@@ -675,6 +678,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "first step, e.g. with --init-from a distilled student)")  # fmt: skip
     _config_option(policy, "--projector-off-episode-fraction", "training.policy.dagger:DaggerConfig.projector_off_episode_fraction", type=float,
                    help="DAgger: share of episodes whose depth is lost like a D455 without its projector")
+    _config_option(policy, "--squares-episode-fraction", "training.policy.dagger:DaggerConfig.squares_episode_fraction", type=float,
+                   help="DAgger: share of the other episodes (outside the field, with --corruption train) that keep one "
+                   "mask of 50-100 px squares to 20-50 %% for the whole episode instead of the per-step 1-30 px patches "
+                   "(the kind of loss of Table II's patches-100px)")  # fmt: skip
     _config_option(policy, "--field", "training.policy.dagger:DaggerConfig.field_conditions", action="store_true",
                    help="DAgger: train in the field, Table II's `field` condition (stereo depth in place of --corruption, the "
                    "gray camera's exposure and noise, image-to-command latency, PX4's randomized response, EKF2-like "

@@ -75,6 +75,10 @@ RL_TRAINING = PatchScheme(1, 30, min_coverage=0.50, max_coverage=0.50)
 # Not the paper's: the policy's patches (1-30 px) at S2's coverages on S2's half of the images, to
 # fine-tune an encoder (latent anchoring) for the corruption the policy flies with, not S2's squares.
 POLICY_PATCHES = PatchScheme(1, 30, min_coverage=0.20, max_coverage=0.50, pristine_fraction=0.5)
+# Not the paper's: large squares held for a whole training episode (NavEnvConfig.squares_episode_fraction),
+# the kind of loss S2 and Table II's ``patches-100px`` are (100 px to 50 %), which the per-step 1-30 px
+# patches do not teach: a blind region that stays where it is.
+EPISODE_SQUARES = PatchScheme(50, 100, min_coverage=0.20, max_coverage=0.50)
 EVALUATION_COVERAGES = (0.0, 0.2, 0.3, 0.4, 0.5)
 SCHEMES = {"s1": S1, "s2": S2, "rl": RL_TRAINING, "policy": POLICY_PATCHES}
 

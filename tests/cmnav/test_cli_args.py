@@ -91,3 +91,11 @@ def test_the_vehicle_choices_are_trainings():
     from training.policy.field import VEHICLES
 
     assert VEHICLE_CHOICES == VEHICLES
+
+
+def test_dagger_options_without_a_teacher_are_refused_not_ignored(tmp_path):
+    out = tmp_path / "policy"
+    proc = _cmnav("train", "policy", "--encoder", "e", "--out", str(out), "--squares-episode-fraction", "0.3", "--beta-start", "0")
+    assert proc.returncode == 2 and proc.stderr.strip() == (
+        "cmnav train policy: --squares-episode-fraction, --beta-start train a student by DAgger: give --teacher TEACHER_DIR"), proc.stderr
+    assert not out.exists()

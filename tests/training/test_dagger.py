@@ -358,3 +358,28 @@ def test_a_policy_is_not_taken_for_a_teacher(tmp_path):
         load_teacher(tmp_path / "p", torch.device("cpu"))
     with pytest.raises(ValueError, match="'train' or 'none'"):
         DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", corruption="episode").validate()
+
+
+def test_squares_episodes_keep_one_large_mask_for_their_whole_episode():
+    encoder = Cmwae(make_config("tiny")).encoder
+    env = NavEnv(NavEnvConfig(num_envs=4, corruption="train", corrupted_env_fraction=0.0, squares_episode_fraction=1.0), encoder, "cpu",
+                 seed=5, teacher_obs=True)  # fmt: skip
+    env.reset()
+    first = env.render_inputs()[1] == 0.0
+    covered = first.flatten(1).float().mean(dim=1)
+    assert bool(((covered >= 0.19) & (covered <= 0.55)).all()), covered  # EPISODE_SQUARES: 20-50 %
+    env.step(torch.zeros(4, 3))
+    assert bool(((env.render_inputs()[1] == 0.0) >= first).all())  # the same squares a step later (and any invalid pixel of the frame)
+    assert bool((env.teacher_observation()[:, STATE_DIM:] > 0.0).all())  # the teacher's depth stays clean
+    # None of them without it: the per-step patches alone (none with corrupted_env_fraction = 0).
+    plain = NavEnv(NavEnvConfig(num_envs=4, corruption="train", corrupted_env_fraction=0.0), encoder, "cpu", seed=5)
+    plain.reset()
+    assert float((plain.render_inputs()[1] == 0.0).float().mean()) < 0.05
+    with pytest.raises(ValueError, match="squares_episode_fraction=0.5 needs corruption='train'"):
+        NavEnvConfig(corruption="none", squares_episode_fraction=0.5).validate()
+    with pytest.raises(ValueError, match="squares_episode_fraction=0.5 replaces the training patches"):
+        DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", corruption="none", squares_episode_fraction=0.5).validate()
+    # In the field's envs the field's depth replaces them; outside it they apply.
+    config = DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", field_conditions=True, field_env_fraction=0.5,
+                          squares_episode_fraction=0.3)  # fmt: skip
+    assert config.env_config(in_field=True).squares_episode_fraction == 0.0 and config.env_config(in_field=False).squares_episode_fraction == 0.3

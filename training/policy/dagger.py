@@ -68,6 +68,9 @@ class DaggerConfig:
     corruption: str = "train"
     corrupted_env_fraction: float = 0.5
     projector_off_episode_fraction: float = 0.15
+    # Of the other episodes outside the field, this share keeps one mask of large squares for the
+    # whole episode (NavEnvConfig.squares_episode_fraction) instead of the per-step patches.
+    squares_episode_fraction: float = 0.0
     # Train in the field (training.policy.field, Table II's ``field``): the student sees the
     # simulated D455's stereo depth (in place of ``corruption``) and the gray camera, latency,
     # PX4's randomized response, EKF2-like estimates and the field config's speed caps act.
@@ -120,6 +123,7 @@ class DaggerConfig:
         return replace(NavEnvConfig(num_envs=num_envs or self.num_envs, corruption=self.corruption, curriculum=curriculum,
                                     corrupted_env_fraction=self.corrupted_env_fraction, level_sampling="uniform",
                                     projector_off_episode_fraction=self.projector_off_episode_fraction,
+                                    squares_episode_fraction=0.0 if in_field else self.squares_episode_fraction,
                                     end_at_goal=self.end_at_goal and (in_field or not self.field_conditions)),
                        **(field_options | self.env_overrides))  # fmt: skip
 
@@ -137,6 +141,9 @@ class DaggerConfig:
         if (self.field_env_fraction < 1.0 or self.outside_teacher_dir is not None) and not self.field_conditions:
             raise ValueError("field_env_fraction and outside_teacher_dir split the envs between the field and outside it: "
                              "they need field_conditions")  # fmt: skip
+        if self.squares_episode_fraction > 0.0 and self.corruption != "train":
+            raise ValueError(f"squares_episode_fraction={self.squares_episode_fraction} replaces the training patches of "
+                             f"some episodes: it needs corruption='train', not {self.corruption!r}")  # fmt: skip
         if not 0.0 <= self.beta_end <= self.beta_start <= 1.0:
             raise ValueError(f"need 0 <= beta_end ({self.beta_end}) <= beta_start ({self.beta_start}) <= 1")
         for key in ("env_steps", "num_envs", "rollout_steps", "buffer_rollouts", "epochs", "minibatches", "checkpoint_every"):

@@ -40,7 +40,7 @@ from runtime.contract.constants import (
 from runtime.contract.action import ActionLimits
 from sim.camera import CameraModel, MountJitter, camera_pose, sample_mount_jitter
 from sim.collision import DEFAULT_VEHICLE_RADIUS_M, collides
-from sim.degradation import RL_TRAINING, PatchScheme, ProjectorOffModel, corrupt_depth, patch_masks
+from sim.degradation import EPISODE_SQUARES, RL_TRAINING, PatchScheme, ProjectorOffModel, corrupt_depth, patch_masks
 from sim.delay import DelayLine, delay_steps
 from sim.dynamics import (COMMAND_DELAY_PARAMS, PER_ENV_PARAMS, DynamicsParams, DynamicsRandomization, QuadrotorDynamics,
                           QuadState, sample_dynamics)  # fmt: skip
@@ -133,6 +133,10 @@ class NavEnvConfig:
     stereo: StereoConfig = D455  # the stereo modes' sensor (their mode sets its projector)
     # With any mode: this fraction of episodes see depth as a D455 without its projector instead.
     projector_off_episode_fraction: float = 0.0
+    # With train: this fraction of the other episodes keep one mask of large squares
+    # (sim.degradation.EPISODE_SQUARES: 50-100 px to 20-50 %) for the whole episode instead of the
+    # per-step patches.
+    squares_episode_fraction: float = 0.0
     # curriculum: every new episode at the curriculum's level; uniform: each at a level drawn
     # uniformly from [min_level, max_level] (distillation covers every level Table II tests).
     level_sampling: str = "curriculum"
@@ -192,9 +196,12 @@ class NavEnvConfig:
             raise ValueError(f"num_envs={self.num_envs} must be >= 1")
         if self.corruption not in CORRUPTION_MODES:
             raise ValueError(f"corruption={self.corruption!r} must be one of {CORRUPTION_MODES}")
-        for key in ("corrupted_env_fraction", "projector_off_episode_fraction"):
+        for key in ("corrupted_env_fraction", "projector_off_episode_fraction", "squares_episode_fraction"):
             if not 0.0 <= getattr(self, key) <= 1.0:
                 raise ValueError(f"{key}={getattr(self, key)} must lie in [0, 1]")
+        if self.squares_episode_fraction > 0.0 and self.corruption != "train":
+            raise ValueError(f"squares_episode_fraction={self.squares_episode_fraction} needs corruption='train' "
+                             f"(it replaces that mode's per-step patches), not {self.corruption!r}")  # fmt: skip
         if self.level_sampling not in LEVEL_SAMPLING:
             raise ValueError(f"level_sampling={self.level_sampling!r} must be one of {LEVEL_SAMPLING}")
         if self.physics_substeps < 1:
@@ -374,6 +381,7 @@ class NavEnv:
         self.episode_level = torch.zeros(n, dtype=torch.long, device=self.device)
         self.episode_masks = torch.zeros(n, IMAGE_SIZE_PX, IMAGE_SIZE_PX, dtype=torch.bool)
         self.projector_off_episode = torch.zeros(n, dtype=torch.bool)
+        self.squares_episode = torch.zeros(n, dtype=torch.bool)  # holds its episode_masks (squares_episode_fraction)
         self.active = torch.ones(n, dtype=torch.bool, device=self.device)
         self.last_render: RenderOutput | None = None
         self.last_gray: GrayFrame | None = None
@@ -465,6 +473,12 @@ class NavEnv:
         if cfg.corruption == "episode":
             coverage = cfg.corruption_scheme.sample_coverage(len(envs), self.generator)
             self.episode_masks[envs] = patch_masks(coverage, cfg.corruption_scheme, self.generator)
+        if cfg.squares_episode_fraction > 0.0:
+            squares = (torch.rand(len(envs), generator=self.generator) < cfg.squares_episode_fraction) & ~self.projector_off_episode[envs]
+            self.squares_episode[envs] = squares
+            if bool(squares.any()):
+                coverage = EPISODE_SQUARES.sample_coverage(int(squares.sum()), self.generator)
+                self.episode_masks[envs[squares]] = patch_masks(coverage, EPISODE_SQUARES, self.generator)
         self._reset_field(envs, fresh_state)
 
     def _reset_field(self, envs: Tensor, fresh_state: QuadState) -> None:
@@ -544,11 +558,14 @@ class NavEnv:
         depth = preprocess_depth_batch(depth_m)
         if cfg.corruption == "train":
             chosen = ((torch.rand(self.num_envs, generator=self.generator) < cfg.corrupted_env_fraction)
-                      & ~self.projector_off_episode).nonzero().squeeze(1)  # fmt: skip
+                      & ~self.projector_off_episode & ~self.squares_episode).nonzero().squeeze(1)  # fmt: skip
             if len(chosen):
                 coverage = cfg.corruption_scheme.sample_coverage(len(chosen), self.generator)
                 masks = patch_masks(coverage, cfg.corruption_scheme, self.generator)
                 depth[chosen.to(self.device)] = corrupt_depth(depth[chosen.to(self.device)], masks)
+            squares = self.squares_episode.nonzero().squeeze(1)
+            if len(squares):
+                depth[squares.to(self.device)] = corrupt_depth(depth[squares.to(self.device)], self.episode_masks[squares])
         elif cfg.corruption == "episode":
             depth = corrupt_depth(depth, self.episode_masks)
         self._timed("preprocess", t0)

@@ -103,7 +103,7 @@ def main(path: str) -> int:
     print()
     print("| level | contacts: take-off | in flight before the goal | after the goal, offboard (brake, retreat, landing) | "
           "after the goal, PX4's Hold/Land | retreats (ended: count) | landings in offboard (ended: count) | "
-          "landing sites: chosen / where it stopped / travel median, max (m) / none clear |")
+          "landing sites: chosen / where it stopped / travel median, max (m) / stepped away from the path / none clear |")
     print("|---|---|---|---|---|---|---|---|")
     for level, rs in sorted(by_level.items()):
         phases = collections.Counter(contact_phase(r) for r in rs)
@@ -118,7 +118,8 @@ def main(path: str) -> int:
         travel = f"{sum(t == 0.0 for t in travels)} / {_median(travels):.2f}, {max(travels):.2f}" if travels else "- / -"
         print(f"| {level} | {phases['take-off']} | {phases['flight']} | {phases['after goal, offboard']} | "
               f"{phases['after goal, landing'] + phases['after goal']} | {dict(retreats) or '-'} | {dict(descents) or '-'} | "
-              f"{len(sites)} / {travel} / {sum(not s['clear'] for s in sites)} |")
+              f"{len(sites)} / {travel} / {sum(s.get('away_heading_enu_rad') is not None for s in sites)} / "
+              f"{sum(not s['clear'] for s in sites)} |")
     return 0
 
 

@@ -43,7 +43,7 @@ def test_each_contact_is_put_in_its_phase(table, tmp_path):
 
 def test_the_table_counts_phases_and_retreats(table, tmp_path, capsys):
     modes = [[10.0, "OFFBOARD"], [20.0, "HOLD"]]
-    sites = [{"travel_m": 0.7, "clear": True}, {"travel_m": 0.0, "clear": False}]
+    sites = [{"travel_m": 0.7, "clear": True, "away_heading_enu_rad": 1.571}, {"travel_m": 0.0, "clear": False}]
     rows = [_summary(tmp_path, "a", None, 16.0, modes, "arrived", "disarmed", sites[0]), _summary(tmp_path, "b", 18.0, 16.0, modes, "timeout", site=sites[1]),
             _summary(tmp_path, "c", 12.0, None, modes)]
     path = tmp_path / "summaries.jsonl"
@@ -51,4 +51,4 @@ def test_the_table_counts_phases_and_retreats(table, tmp_path, capsys):
     assert table.main(str(path)) == 0
     out = capsys.readouterr().out
     assert "| 0 | 3 | 33 |" in out
-    assert "| 0 | 0 | 1 | 1 | 0 | {'arrived': 1, 'timeout': 1} | {'disarmed': 1} | 2 / 1 / 0.35, 0.70 / 1 |" in out
+    assert "| 0 | 0 | 1 | 1 | 0 | {'arrived': 1, 'timeout': 1} | {'disarmed': 1} | 2 / 1 / 0.35, 0.70 / 1 / 1 |" in out

@@ -118,7 +118,36 @@ def test_evaluate_policy_runs_every_new_condition_on_test_rooms_and_records_fing
     assert set(written["stereo_sensor"]) == {"stereo", "stereo-projector-off"}
     assert written["stereo_sensor"]["stereo"]["projector_on"] and not written["stereo_sensor"]["stereo-projector-off"]["projector_on"]
     assert written["stereo_sensor"]["stereo"]["baseline_m"] == pytest.approx(0.095)
-    assert result["out_dir"] == str(tmp_path / "eval")
+    assert result["out_dir"] == str(tmp_path / "eval") and written["complete"]
+    assert "Incomplete" not in (tmp_path / "eval" / "table2.md").read_text()
+
+
+def test_an_evaluation_stopped_early_keeps_the_cells_it_finished(tmp_path, monkeypatch):
+    import training.policy.evaluate as evaluate
+
+    torch.manual_seed(0)
+    config = make_config("tiny")
+    save_weights(tmp_path / "enc", Cmwae(config), "cmwae", asdict(config), 0, {"train": {"scheme": "s2"}})
+    save_weights(tmp_path / "policy", ActorCritic(POLICY_SIZES["tiny"]), "policy", POLICY_SIZES["tiny"].to_json(), 0,
+                 {"encoder_fingerprint": checkpoint_fingerprint(tmp_path / "enc")})  # fmt: skip
+    fly, calls = evaluate.fly_episodes, []
+
+    def stopped_at_the_second_cell(*args, **kwargs):
+        calls.append(args[2:4])  # (level, condition)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return fly(*args, **kwargs)
+
+    monkeypatch.setattr(evaluate, "fly_episodes", stopped_at_the_second_cell)
+    with pytest.raises(KeyboardInterrupt):
+        evaluate_policy(PolicyEvalConfig(str(tmp_path / "policy"), str(tmp_path / "enc"), levels=(0, 1), conditions=("clean",),
+                                         episodes=1, batch_envs=1, out_dir=str(tmp_path / "eval"), plots_per_cell=0,
+                                         precision="fp32"))  # fmt: skip
+    written = json.loads((tmp_path / "eval" / "table2.json").read_text())
+    assert calls == [(0, "clean"), (1, "clean")]
+    assert [(c["condition"], c["level"], c["episodes"]) for c in written["cells"]] == [("clean", 0, 1)] and not written["complete"]
+    table = (tmp_path / "eval" / "table2.md").read_text()
+    assert "| clean | 0 | 1 |" in table and "Incomplete" in table
 
 
 def test_every_condition_builds_a_valid_env_config():

@@ -197,7 +197,21 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
         action_parity = check_policy_parity(policy, cmwae.encoder, encoder, device, config.seed)
     out = Path(config.out_dir or Path(config.policy_dir) / "eval")
     out.mkdir(parents=True, exist_ok=True)
-    cells = []
+    cells: list[dict] = []
+    stereo = {c: asdict(NavEnvConfig().stereo) | {"projector_on": CONDITIONS[c]["corruption"] == "stereo"}
+              for c in conditions if CONDITIONS[c]["corruption"] in STEREO_MODES}  # fmt: skip
+    result = {
+        "policy": str(config.policy_dir), "role": card.get("meta", {}).get("role", "policy"),
+        "policy_fingerprint": checkpoint_fingerprint(config.policy_dir),
+        "encoder": config.encoder_dir, "encoder_fingerprint": fingerprint,
+        "rooms": config.room_set, "room_seed": config.room_seed,
+        "fast_path": {"encoder": getattr(getattr(encoder, "path", None), "name", "fp32"), "bf16_action_error": action_parity,
+                      "precision_requested": config.precision},
+        "stereo_sensor": stereo,
+        "field": {c: field_description(condition_env_overrides(c)) for c in conditions if c in FIELD_CONDITIONS + PX4_VEHICLE_CONDITIONS},
+        "policy_env_steps": card.get("step"), "config": asdict(replace(config, out_dir=str(out))), "cells": cells,
+        "complete": False,  # until the last cell: the tables are written after every cell, so a run stopped early keeps its cells
+    }  # fmt: skip
     progress = Progress(len(conditions) * len(config.levels) * config.episodes, "eval policy", unit="episodes")
     for condition in conditions:
         for level in config.levels:
@@ -222,24 +236,18 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
                 "crash_pct": 100.0 * counts[CRASH] / total, "success_ci95_pct": [100.0 * low, 100.0 * high],
                 "reached_pct": 100.0 * reached / total,
             })  # fmt: skip
+            log.info("cell %d of %d: %s", len(cells), len(conditions) * len(config.levels), format_table2({"cells": cells[-1:]}).splitlines()[-1])
+            result["complete"] = len(cells) == len(conditions) * len(config.levels)
+            _write_tables(out, result)
     progress.close()
-    stereo = {c: asdict(NavEnvConfig().stereo) | {"projector_on": CONDITIONS[c]["corruption"] == "stereo"}
-              for c in conditions if CONDITIONS[c]["corruption"] in STEREO_MODES}  # fmt: skip
-    result = {
-        "policy": str(config.policy_dir), "role": card.get("meta", {}).get("role", "policy"),
-        "policy_fingerprint": checkpoint_fingerprint(config.policy_dir),
-        "encoder": config.encoder_dir, "encoder_fingerprint": fingerprint,
-        "rooms": config.room_set, "room_seed": config.room_seed,
-        "fast_path": {"encoder": getattr(getattr(encoder, "path", None), "name", "fp32"), "bf16_action_error": action_parity,
-                      "precision_requested": config.precision},
-        "stereo_sensor": stereo,
-        "field": {c: field_description(condition_env_overrides(c)) for c in conditions if c in FIELD_CONDITIONS + PX4_VEHICLE_CONDITIONS},
-        "policy_env_steps": card.get("step"), "config": asdict(replace(config, out_dir=str(out))), "cells": cells,
-    }  # fmt: skip
-    (out / "table2.json").write_text(json.dumps(result, indent=2))
-    (out / "table2.md").write_text(format_table2(result) + "\n")
     result["out_dir"] = str(out)
     return result
+
+
+def _write_tables(out: Path, result: dict) -> None:
+    (out / "table2.json").write_text(json.dumps(result, indent=2))
+    stopped = "" if result["complete"] else "\n\nIncomplete: the run stopped (or is still running) before its last cell.\n"
+    (out / "table2.md").write_text(format_table2(result) + "\n" + stopped)
 
 
 def reached_goal(path_m: np.ndarray, goal_m) -> bool:

@@ -466,17 +466,18 @@ def choose_landing_site(way_enu_m: np.ndarray, seen: SeenSurfaces, preferred_bac
     if ok.any():
         order = np.argsort(np.abs(back.travels_m - preferred_m), kind="stable")
         return _site(back, order[int(np.argmax(ok[order]))], True, len(seen), None)
-    headings = np.arange(LANDING_AWAY_DIRECTIONS) * (2.0 * math.pi / LANDING_AWAY_DIRECTIONS)
-    aways = [_candidates(np.vstack([way[0], way[0] + [LANDING_AWAY_MAX_M * math.cos(h), LANDING_AWAY_MAX_M * math.sin(h), 0.0]]),
-                         seen, near_cells, other_cells, stop_near_m, way_clearance_m) for h in headings]  # fmt: skip
-    # the shortest clear step (of equal ones the clearest below); else the clearest point reached
-    steps = [(c.travels_m[k], -c.below_m[k], i, k) for i, c in enumerate(aways) for k in np.flatnonzero(c.reached & (c.below_m >= clearance_m))]
-    if steps:
-        _, _, i, k = min(steps)
-        return _site(aways[i], k, True, len(seen), float(headings[i]))
-    reached = [(-c.below_m[k], c.travels_m[k], i, k) for i, c in enumerate([back, *aways]) for k in np.flatnonzero(c.reached)]
-    _, _, i, k = min(reached)
-    return _site([back, *aways][i], k, False, len(seen), None if i == 0 else float(headings[i - 1]))
+    # (candidates, heading): the way back first (no heading), then the straight steps away
+    ways = [(back, None)] + [
+        (_candidates(np.vstack([way[0], way[0] + [LANDING_AWAY_MAX_M * math.cos(h), LANDING_AWAY_MAX_M * math.sin(h), 0.0]]),
+                     seen, near_cells, other_cells, stop_near_m, way_clearance_m), float(h))
+        for h in np.arange(LANDING_AWAY_DIRECTIONS) * (2.0 * math.pi / LANDING_AWAY_DIRECTIONS)
+    ]  # fmt: skip
+    # the shortest clear step (of equal ones the clearest below); else the clearest point reached on any way
+    steps = [(c.travels_m[k], -c.below_m[k], i, k) for i, (c, _) in enumerate(ways) if i > 0
+             for k in np.flatnonzero(c.reached & (c.below_m >= clearance_m))]  # fmt: skip
+    clear = bool(steps)
+    _, _, i, k = min(steps or [(-c.below_m[k], c.travels_m[k], i, k) for i, (c, _) in enumerate(ways) for k in np.flatnonzero(c.reached)])
+    return _site(ways[i][0], k, clear, len(seen), ways[i][1])
 
 
 def measured_speed_m_s(vehicle: VehicleState) -> float:

@@ -212,7 +212,8 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
         "policy_env_steps": card.get("step"), "config": asdict(replace(config, out_dir=str(out))), "cells": cells,
         "complete": False,  # until the last cell: the tables are written after every cell, so a run stopped early keeps its cells
     }  # fmt: skip
-    progress = Progress(len(conditions) * len(config.levels) * config.episodes, "eval policy", unit="episodes")
+    n_cells = len(conditions) * len(config.levels)
+    progress = Progress(n_cells * config.episodes, "eval policy", unit="episodes")
     for condition in conditions:
         for level in config.levels:
             counts = {SUCCESS: 0, TIMEOUT: 0, CRASH: 0}
@@ -236,8 +237,8 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
                 "crash_pct": 100.0 * counts[CRASH] / total, "success_ci95_pct": [100.0 * low, 100.0 * high],
                 "reached_pct": 100.0 * reached / total,
             })  # fmt: skip
-            log.info("cell %d of %d: %s", len(cells), len(conditions) * len(config.levels), format_table2({"cells": cells[-1:]}).splitlines()[-1])
-            result["complete"] = len(cells) == len(conditions) * len(config.levels)
+            log.info("cell %d of %d: %s", len(cells), n_cells, format_table2({"cells": cells[-1:]}).splitlines()[-1])
+            result["complete"] = len(cells) == n_cells
             _write_tables(out, result)
     progress.close()
     result["out_dir"] = str(out)

@@ -377,8 +377,11 @@ def test_squares_episodes_keep_one_large_mask_for_their_whole_episode():
     assert float((plain.render_inputs()[1] == 0.0).float().mean()) < 0.05
     with pytest.raises(ValueError, match="squares_episode_fraction=0.5 needs corruption='train'"):
         NavEnvConfig(corruption="none", squares_episode_fraction=0.5).validate()
-    with pytest.raises(ValueError, match="squares_episode_fraction=0.5 replaces the training patches"):
+    with pytest.raises(ValueError, match="squares_episode_fraction=0.5 needs corruption='train'"):
         DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", corruption="none", squares_episode_fraction=0.5).validate()
+    # With every env in the field there is none for the squares: refused, not ignored.
+    with pytest.raises(ValueError, match="squares_episode_fraction=0.5 applies to the envs outside the field"):
+        DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", field_conditions=True, squares_episode_fraction=0.5).validate()
     # In the field's envs the field's depth replaces them; outside it they apply.
     config = DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", field_conditions=True, field_env_fraction=0.5,
                           squares_episode_fraction=0.3)  # fmt: skip

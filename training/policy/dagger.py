@@ -141,9 +141,9 @@ class DaggerConfig:
         if (self.field_env_fraction < 1.0 or self.outside_teacher_dir is not None) and not self.field_conditions:
             raise ValueError("field_env_fraction and outside_teacher_dir split the envs between the field and outside it: "
                              "they need field_conditions")  # fmt: skip
-        if self.squares_episode_fraction > 0.0 and self.corruption != "train":
-            raise ValueError(f"squares_episode_fraction={self.squares_episode_fraction} replaces the training patches of "
-                             f"some episodes: it needs corruption='train', not {self.corruption!r}")  # fmt: skip
+        if self.squares_episode_fraction > 0.0 and all(in_field for in_field, _ in self.env_parts()):
+            raise ValueError(f"squares_episode_fraction={self.squares_episode_fraction} applies to the envs outside the field, "
+                             f"and field_env_fraction=1.0 puts every env in it: give a field_env_fraction below 1")  # fmt: skip
         if not 0.0 <= self.beta_end <= self.beta_start <= 1.0:
             raise ValueError(f"need 0 <= beta_end ({self.beta_end}) <= beta_start ({self.beta_start}) <= 1")
         for key in ("env_steps", "num_envs", "rollout_steps", "buffer_rollouts", "epochs", "minibatches", "checkpoint_every"):

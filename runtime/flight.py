@@ -27,6 +27,7 @@ import dataclasses
 import functools
 import gc
 import logging
+import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -72,6 +73,7 @@ from .watchdog import (
     brake_ended,
     brake_record,
     brake_setpoint,
+    cap_approach,
     choose_landing_site,
     climb_speed_m_s,
     cut_path,
@@ -115,6 +117,9 @@ class EpisodeResult:
     # How the brake before Hold ended ({ended: stopped | brake_timeout, duration_s, speed_at_hold_m_s};
     # runtime.watchdog.brake_record); None when no brake ran (the pilot took over, nothing flown).
     brake: dict | None = None
+    # The approach to a dry run's last goal (runtime.watchdog.cap_approach): {capped_steps,
+    # least_cap_m_s}; None on other goals.
+    approach_cap: dict | None = None
 
     def summary(self) -> dict:
         """The episode's JSON record: the keys of an episode in ``cmnav fly``'s summary and of the
@@ -663,6 +668,9 @@ class FlightLoop:
             self._after_command(frame, result)
             return False
         cmd_flu = action_to_velocity_flu(result.action_clipped, self.config.policy.limits)
+        if episode.landing_next and state.home_enu_m is not None:  # the brake after the last goal must stop short of what was seen
+            cmd_flu, cap_m_s = cap_approach(cmd_flu, state.pos_enu_m, state.yaw_enu_rad, self._goal_enu_m, self._seen)
+            episode.note_approach_cap(cap_m_s)
         cmd = velocity_flu_to_mavsdk(cmd_flu)
         t_checked = time.monotonic_ns()
         try:
@@ -755,6 +763,9 @@ class FlightLoop:
             frames_rejected=self.frames_rejected,
             tracking_error_peak_m_s=round(self.watchdog.tracking_sustained_peak_m_s, 3),
             brake=episode.brake or self.watchdog.brake,
+            approach_cap={"capped_steps": episode.approach_capped_steps,
+                          "least_cap_m_s": None if episode.approach_least_cap_m_s is None else round(episode.approach_least_cap_m_s, 3)}
+            if episode.landing_next else None,
         )
 
 
@@ -781,7 +792,14 @@ class _Episode:
     timing: StageTimes = field(default_factory=StageTimes)
     brake: dict | None = None
     landing_next: bool = False  # a dry run's last goal (FlightLoop.fly)
+    approach_capped_steps: int = 0  # steps whose command runtime.watchdog.cap_approach slowed
+    approach_least_cap_m_s: float | None = None
     ended: asyncio.Future = field(default_factory=lambda: asyncio.get_running_loop().create_future())
+
+    def note_approach_cap(self, cap_m_s: float | None) -> None:
+        if cap_m_s is not None:
+            self.approach_capped_steps += 1
+            self.approach_least_cap_m_s = min(cap_m_s, self.approach_least_cap_m_s or math.inf)
 
     def finish(self, outcome: str, reason: str | None, t_ns: int) -> None:
         if self.outcome is None:

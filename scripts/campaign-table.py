@@ -103,8 +103,9 @@ def main(path: str) -> int:
     print()
     print("| level | contacts: take-off | in flight before the goal | after the goal, offboard (brake, retreat, landing) | "
           "after the goal, PX4's Hold/Land | retreats (ended: count) | landings in offboard (ended: count) | "
-          "landing sites: chosen / where it stopped / travel median, max (m) / stepped away from the path / none clear |")
-    print("|---|---|---|---|---|---|---|---|")
+          "landing sites: chosen / where it stopped / travel median, max (m) / stepped away from the path / none clear | "
+          "approaches slowed near what was seen (least cap m/s) |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for level, rs in sorted(by_level.items()):
         phases = collections.Counter(contact_phase(r) for r in rs)
         retreats = collections.Counter(((r.get("brake") or {}).get("retreat") or {}).get("ended") for r in rs)
@@ -119,8 +120,15 @@ def main(path: str) -> int:
         print(f"| {level} | {phases['take-off']} | {phases['flight']} | {phases['after goal, offboard']} | "
               f"{phases['after goal, landing'] + phases['after goal']} | {dict(retreats) or '-'} | {dict(descents) or '-'} | "
               f"{len(sites)} / {travel} / {sum(s.get('away_heading_enu_rad') is not None for s in sites)} / "
-              f"{sum(not s['clear'] for s in sites)} |")
+              f"{sum(not s['clear'] for s in sites)} | {_approaches(rs)} |")
     return 0
+
+
+def _approaches(rs: list[dict]) -> str:
+    """How many flights' approach to the goal was slowed (runtime.watchdog.cap_approach) and the least cap."""
+    caps = [r["approach_cap"] for r in rs if r.get("approach_cap")]
+    slowed = [c["least_cap_m_s"] for c in caps if c["capped_steps"] > 0]
+    return f"{len(slowed)} of {len(caps)} ({min(slowed):.2f})" if slowed else (f"0 of {len(caps)}" if caps else "-")
 
 
 if __name__ == "__main__":

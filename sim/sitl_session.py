@@ -436,6 +436,7 @@ def merge_summary(
         "watchdog_trips": trips,
         "tracking_error_peak_m_s": flight.get("tracking_error_peak_m_s"),
         "brake": flight.get("brake"),
+        "approach_cap": flight.get("approach_cap"),
         "t_launch_to_offboard_s": flight.get("t_launch_to_offboard_s"),
         "takeoff_climb": flight.get("takeoff_climb"),
         "wall_s": round(wall_s, 2),

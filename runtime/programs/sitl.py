@@ -18,7 +18,8 @@ refused, no autopilot, not healthy, takeoff failed, ...).  The summary is writte
 it can be: ``{outcome: success|timeout|aborted, abort_reason, time_s, frames, missed_deadlines,
 step_ms {p50, p99}, stage_ms {stage: {p50, p99}}, watchdog_trips [...], log,
 t_launch_to_offboard_s, takeoff_climb, goal_rel_home_enu_m, final_distance_m, tracking_error_peak_m_s,
-t_episode_start_s, injections, ...}``; ``takeoff_climb`` is the climb in offboard that finishes the
+approach_cap, t_episode_start_s, injections, ...}``; ``approach_cap`` is {capped_steps, least_cap_m_s}
+of the approach to the goal (``runtime.watchdog.cap_approach``); ``takeoff_climb`` is the climb in offboard that finishes the
 autopilot's take-off (``FlightLoop.climb``: {ended, from_m, to_m, drift_m, duration_s});
 ``time_s`` runs from offboard start to the goal, ``t_launch_to_offboard_s`` from this process's
 start to offboard confirmed by telemetry; ``t_episode_start_s`` is when the episode started (the

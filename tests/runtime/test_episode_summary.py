@@ -8,7 +8,7 @@ from runtime.flight import EpisodeResult
 
 PUBLISHED_KEYS = {
     "outcome", "abort_reason", "time_s", "frames", "frames_received", "missed_deadlines", "bad_frames", "step_ms",
-    "stage_ms", "watchdog_trips", "final_distance_m", "frames_rejected", "tracking_error_peak_m_s", "brake",
+    "stage_ms", "watchdog_trips", "final_distance_m", "frames_rejected", "tracking_error_peak_m_s", "brake", "approach_cap",
 }  # fmt: skip
 
 

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+from export.goal_seeker import export_goal_seeker
 from runtime.camera import Frame
 from runtime.config import ConfigError, MissionConfig
 from runtime.contract import CONTROL_PERIOD_S
@@ -20,9 +21,21 @@ from runtime.contract.camera import depth_points_flu, focal_length_px
 from runtime.contract.constants import CAMERA_HFOV_RAD
 from runtime.contract.frames import quat_from_euler
 from runtime.camera.surfaces import SEEN_CELL_M, SEEN_FLOOR_BAND_M, SEEN_MAX_DEPTH_M, SEEN_MIN_FRAMES, SeenSurfaces
-from runtime.watchdog import LANDING_AWAY_MAX_M, choose_landing_site, landing_way
+from runtime.watchdog import (
+    APPROACH_DECEL_M_S2,
+    APPROACH_DELAY_S,
+    APPROACH_GOAL_M,
+    APPROACH_MARGIN_M,
+    APPROACH_MIN_M_S,
+    LANDING_AWAY_MAX_M,
+    approach_speed_cap_m_s,
+    cap_approach,
+    choose_landing_site,
+    landing_way,
+)
 from sim.camera import CameraModel
 from sim.render import render
+from sim.sensor import StereoDepthSensor
 from sim.world import WorldBatch
 from tests.runtime.test_flight_loop import START
 from tests.runtime.test_retreat import LandingVehicle, _fly_and_retreat
@@ -79,7 +92,7 @@ def test_rendered_frames_show_the_post_and_the_walls_not_the_floor():
     assert post_clearance[0] <= 0.1, post_clearance
     # Nothing between the camera and the post; the floor (seen 2-6 m ahead) is not a surface.
     assert seen.clearance_m(np.array([[1.5, 1.0]]), 3.0)[0] >= 0.9
-    assert all(low > SEEN_FLOOR_BAND_M for low, _, _ in seen._cells.values())
+    assert seen._low_m.min() > SEEN_FLOOR_BAND_M
     # ... and the heights it spans: below a flight at 1.5 m, not beside it.
     assert seen.clearance_m(POST_XY_M[None], 1.8, 1.2)[0] > 0.5
     # The far wall (x = 8 m) lies beyond SEEN_MAX_DEPTH_M from x <= 1.5: unseen; the side walls are seen.
@@ -105,6 +118,60 @@ def test_a_surface_counts_once_frames_show_it_and_the_floor_never_through_an_est
             seen.add_frame(_depth(room, pose, 0.0), pose - [0.0, 0.0, 0.15], quat_from_euler(roll, pitch, 0.0), 0.0)
     floor_ahead = np.array([[x, 1.0] for x in np.arange(2.5, 6.0, 0.1)])
     assert np.all(seen.clearance_m(floor_ahead, 1.8) > 0.5)  # (the ceiling, at 3 m, is a surface: above it)
+
+
+def test_what_later_frames_see_through_stops_being_a_surface_and_what_they_show_stays():
+    pose, level = np.array([1.0, 1.0, 1.5]), quat_from_euler(0.0, 0.0, 0.0)
+    room = _room(LOW_POST)
+    true_depth = _depth(room, pose, 0.0)
+    # A stereo mismatch: a patch 2.5 m ahead at the flight height, where the room is free, in 4 frames.
+    phantom = true_depth.copy()
+    rows, cols = phantom.shape
+    phantom[rows // 2 - 6 : rows // 2 + 6, cols // 2 - 8 : cols // 2 + 8] = 2.5
+    seen = SeenSurfaces()
+    for _ in range(4):
+        seen.add_frame(phantom, pose, level, 0.0)
+    ahead = np.array([[3.5, 1.0]])
+    assert seen.clearance_m(ahead, 1.8, 1.2)[0] <= SEEN_CELL_M
+    # Frames that look through it to the wall beyond: once more of them than showed it, it is gone.
+    for n in range(1, 6):
+        seen.add_frame(true_depth, pose, level, 0.0)
+        assert (seen.clearance_m(ahead, 1.8, 1.2)[0] > 0.5) == (n > 4), n  # (the side wall: 0.95 m off)
+    # The post below the flight height, the walls beside it, seen in every frame: still there.
+    assert seen.clearance_m(POST_XY_M[None], POST_TOP_M + 0.1)[0] <= 0.1
+    # the rays that graze the side walls on their way do not clear them: every bin of theirs held is a surface
+    y_m = (((seen._keys >> 8) & 0xFFFFFF) - (1 << 23) + 0.5) * SEEN_CELL_M
+    walls = (y_m < 0.2) | (y_m > 4.8)
+    assert walls.sum() > 100 and np.all(seen._through[walls] == 0)
+    # A wall seen through an estimate 0.4 m behind the truth (as PX4's drifted), then through the
+    # true one: the copy 0.4 m in front of the wall is seen through and goes; the wall stays.
+    wall_room = _room()
+    seen = SeenSurfaces()
+    near_wall = np.array([5.0, 2.5, 1.5])  # 3 m from the wall at x = 8 m
+    for _ in range(5):
+        seen.add_frame(_depth(wall_room, near_wall, 0.0), near_wall - [0.4, 0.0, 0.0], level, 0.0)
+    assert seen.clearance_m(np.array([[7.6, 2.5]]), 1.8, 1.2)[0] <= SEEN_CELL_M
+    for _ in range(6):
+        seen.add_frame(_depth(wall_room, near_wall, 0.0), near_wall, level, 0.0)
+    at_flight_height = seen.cells_xy_m(1.8, 1.2)
+    facing = at_flight_height[np.abs(at_flight_height[:, 1] - 2.5) < 0.5]
+    assert facing[:, 0].max() >= 7.9 and facing[:, 0].min() >= 7.9 - 2 * SEEN_CELL_M, facing[:, 0].min()
+
+
+def test_a_post_seen_by_the_stereo_camera_stays_a_surface_as_the_rays_beside_it_clear_the_room():
+    """The simulated D455 (sim.sensor) flying toward a thin post: the rays that pass beside it to
+    the wall clear the cells around it, not the post."""
+    room = _room((3.0, 1.0, TALL_M))
+    sensor = StereoDepthSensor(threads=1)
+    generator = torch.Generator().manual_seed(0)
+    seen = SeenSurfaces()
+    for x in np.arange(0.5, 2.01, 0.1):
+        pose = np.array([x, 1.0, 1.5])
+        q = quat_from_euler(0.0, 0.0, 0.0)
+        frame = sensor.measure(room, torch.tensor(pose[None], dtype=torch.float32), torch.tensor(q[None], dtype=torch.float32), generator)
+        seen.add_frame(frame.depth_m[0].numpy(), pose, q, 0.0)
+    assert seen.clearance_m(np.array([[3.0, 1.0]]), 1.8, 1.2)[0] <= SEEN_CELL_M
+    assert seen.clearance_m(np.array([[2.2, 1.0]]), 1.8, 1.2)[0] >= 0.6  # and nothing in front of it
 
 
 def _seen_along(path: np.ndarray, room: WorldBatch) -> SeenSurfaces:
@@ -209,6 +276,31 @@ def test_the_site_search_and_clearance_are_mission_keys_with_bounds():
         MissionConfig(land_clearance_m=0.1)
 
 
+def test_the_approach_to_the_last_goal_is_no_faster_than_the_brake_stops_in_before_what_was_seen():
+    # The cap's law: the brake's delay and deceleration use up the free distance less the margin.
+    for free_m in (1.5, 2.0, 3.0, 4.0):
+        v = approach_speed_cap_m_s(free_m)
+        assert v * APPROACH_DELAY_S + v**2 / (2.0 * APPROACH_DECEL_M_S2) == pytest.approx(free_m - APPROACH_MARGIN_M)
+    assert approach_speed_cap_m_s(APPROACH_MARGIN_M) == approach_speed_cap_m_s(0.0) == APPROACH_MIN_M_S
+    # Flying +x toward the far wall (x = 8 m) of a rendered room, the goal 0.5 m before it.
+    room = _room()
+    seen = _seen_along(np.array([[x, 2.5, 1.5] for x in np.arange(3.0, 5.01, 0.13)]), room)
+    goal, at = np.array([7.5, 2.5, 1.5]), np.array([5.5, 2.5, 1.5])
+    toward = np.array([2.0, 0.0, 0.0, 0.1])  # forward 2 m/s (yaw 0: +x), a yaw rate
+    capped, cap = cap_approach(toward, at, 0.0, goal, seen)
+    free_m = 8.0 - at[0]  # to the wall's cells, to a cell
+    assert cap == pytest.approx(approach_speed_cap_m_s(free_m), abs=0.1) and cap < 2.0
+    np.testing.assert_allclose(capped, [cap, 0.0, 0.0, 0.1])  # the yaw rate and the vertical speed kept
+    # The same command with the vehicle yawed 90 degrees runs along the wall (+y, 2.5 m free): less capped.
+    _, along = cap_approach(toward, at, math.pi / 2, goal, seen)
+    assert along is None or along > cap
+    # Farther than APPROACH_GOAL_M from the goal, or no surface seen: the policy's command.
+    assert cap_approach(toward, goal - [APPROACH_GOAL_M + 0.1, 0.0, 0.0], 0.0, goal, seen)[1] is None
+    assert cap_approach(toward, at, 0.0, goal, SeenSurfaces())[1] is None
+    # Stopped already (no horizontal command): nothing to cap.
+    assert cap_approach(np.array([0.0, 0.0, 0.5, 0.0]), at, 0.0, goal, seen)[1] is None
+
+
 class RenderingCamera:
     """15 Hz frames of ``world`` rendered from the vehicle's pose as it flies."""
 
@@ -256,3 +348,42 @@ def test_the_dry_run_lands_clear_of_the_wall_and_of_a_post_beside_its_way_back(g
     site = result.brake["landing_site"]
     assert site["clear"] and result.brake["descent"]["ended"] == "disarmed", result.brake
     assert np.linalg.norm(landed[:2] - POST_XY_M) >= 0.8 - 0.15 - SEEN_CELL_M, landed
+
+
+class NearestToTheWall(LandingVehicle):
+    """A landing vehicle that keeps the farthest +x it reached (the far wall is at x = 8 m) and its
+    fastest speed from ``from_x_m`` on."""
+
+    def __init__(self, from_x_m: float):
+        super().__init__()
+        self.from_x_m, self.max_x_m, self.speed_there_m_s = from_x_m, -math.inf, 0.0
+
+    def state(self):
+        self.max_x_m = max(self.max_x_m, float(self.pos[0]))
+        if self.pos[0] >= self.from_x_m:
+            self.speed_there_m_s = max(self.speed_there_m_s, float(np.linalg.norm(self.vel_enu[:2])))
+        return super().state()
+
+
+@pytest.mark.flight
+def test_the_approach_to_a_goal_near_the_wall_slows_so_that_the_brake_stops_short_of_it(tmp_path, monkeypatch):
+    # A goal seeker that flies at the goal at 2 m/s to 0.5 m from it, as a policy may.
+    monkeypatch.setattr("export.goal_seeker.CRUISE_SPEED_M_S", 2.0)
+    monkeypatch.setattr("export.goal_seeker.SLOWDOWN_RADIUS_M", 0.5)
+    goal_seeker = tmp_path / "fast-goal-seeker.onnx"
+    export_goal_seeker(str(goal_seeker))
+    goal = START + np.array([6.5, 0.0, 0.0])  # 0.5 m before the far wall
+    vehicle = NearestToTheWall(goal[0] - 1.0)
+    result, _, _ = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, goal, 1.5, RenderingCamera(_room(), vehicle), land_in_offboard=True, **SITE))
+    assert result.outcome == "success" and result.approach_cap["capped_steps"] > 0, result
+    assert result.approach_cap["least_cap_m_s"] < 1.5, result.approach_cap
+    capped_gap_m, capped_speed_m_s = 8.0 - vehicle.max_x_m, vehicle.speed_there_m_s
+    # The policy's command as it was (no cap): the brake carries the vehicle nearer the wall.
+    monkeypatch.setattr("runtime.flight.cap_approach", lambda cmd_flu, *_: (cmd_flu, None))
+    vehicle = NearestToTheWall(goal[0] - 1.0)
+    result, _, _ = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, goal, 1.5, RenderingCamera(_room(), vehicle), land_in_offboard=True, **SITE))
+    assert result.outcome == "success" and result.approach_cap == {"capped_steps": 0, "least_cap_m_s": None}, result
+    # Seen here (a vehicle lagging 0.8 s behind its command): 0.82 m left to the wall, 1.74 m/s at
+    # most in the goal's 1 m, against 0.65 m and 1.98 m/s.
+    assert capped_gap_m > 8.0 - vehicle.max_x_m + 0.08 and capped_speed_m_s < vehicle.speed_there_m_s - 0.1, (
+        capped_gap_m, 8.0 - vehicle.max_x_m, capped_speed_m_s, vehicle.speed_there_m_s)

@@ -46,9 +46,10 @@ def test_the_table_counts_phases_and_retreats(table, tmp_path, capsys):
     sites = [{"travel_m": 0.7, "clear": True, "away_heading_enu_rad": 1.571}, {"travel_m": 0.0, "clear": False}]
     rows = [_summary(tmp_path, "a", None, 16.0, modes, "arrived", "disarmed", sites[0]), _summary(tmp_path, "b", 18.0, 16.0, modes, "timeout", site=sites[1]),
             _summary(tmp_path, "c", 12.0, None, modes)]
+    rows[0]["approach_cap"], rows[1]["approach_cap"] = {"capped_steps": 7, "least_cap_m_s": 0.84}, {"capped_steps": 0, "least_cap_m_s": None}
     path = tmp_path / "summaries.jsonl"
     path.write_text("\n".join(json.dumps(r) for r in rows) + "\n")
     assert table.main(str(path)) == 0
     out = capsys.readouterr().out
     assert "| 0 | 3 | 33 |" in out
-    assert "| 0 | 0 | 1 | 1 | 0 | {'arrived': 1, 'timeout': 1} | {'disarmed': 1} | 2 / 1 / 0.35, 0.70 / 1 / 1 |" in out
+    assert "| 0 | 0 | 1 | 1 | 0 | {'arrived': 1, 'timeout': 1} | {'disarmed': 1} | 2 / 1 / 0.35, 0.70 / 1 / 1 | 1 of 2 (0.84) |" in out

@@ -123,10 +123,7 @@ class SeenSurfaces:
         else:
             first, last = (int(b) for b in _height_bin(np.array([above_z_m, below_z_m])))
             surface &= ((self._keys & 0xFF) >= first) & ((self._keys & 0xFF) <= last)
-        cells = np.unique(self._keys[surface] >> 8)
-        half = 1 << (_KEY_BITS - 1)
-        ij = np.stack([(cells >> _KEY_BITS) - half, (cells & ((1 << _KEY_BITS) - 1)) - half], axis=1)
-        return (ij.astype(np.float64).reshape(-1, 2) + 0.5) * SEEN_CELL_M
+        return (_cells_ij(np.unique(self._keys[surface] >> 8 << 8)).astype(np.float64) + 0.5) * SEEN_CELL_M
 
     def free_ahead_m(self, from_xy_m: np.ndarray, heading_enu_rad: float, half_width_m: float, below_z_m: float,
                      above_z_m: float, max_m: float) -> float:  # fmt: skip
@@ -157,6 +154,12 @@ def _bin_keys(world_enu_m: np.ndarray) -> np.ndarray:
     """[N] int64 key of the cell bin of each point (N, 3): (cell i, cell j, height bin) packed."""
     cells = np.floor(world_enu_m[:, :2] / SEEN_CELL_M).astype(np.int64) + (1 << (_KEY_BITS - 1))
     return (cells[:, 0] << (_KEY_BITS + 8)) | (cells[:, 1] << 8) | _height_bin(world_enu_m[:, 2])
+
+
+def _cells_ij(keys: np.ndarray) -> np.ndarray:
+    """(N, 2) the cell indices (i, j) of each key of :func:`_bin_keys`."""
+    half = 1 << (_KEY_BITS - 1)
+    return np.stack([(keys >> (_KEY_BITS + 8)) - half, ((keys >> 8) & ((1 << _KEY_BITS) - 1)) - half], axis=1).reshape(-1, 2)
 
 
 # The key offsets of a cell bin's 26 neighbours and itself (cells +-1 in i and j, bins +-1).

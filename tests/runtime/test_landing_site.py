@@ -20,7 +20,7 @@ from runtime.contract import CONTROL_PERIOD_S
 from runtime.contract.camera import depth_points_flu, focal_length_px
 from runtime.contract.constants import CAMERA_HFOV_RAD
 from runtime.contract.frames import quat_from_euler
-from runtime.camera.surfaces import SEEN_CELL_M, SEEN_FLOOR_BAND_M, SEEN_MAX_DEPTH_M, SEEN_MIN_FRAMES, SeenSurfaces
+from runtime.camera.surfaces import SEEN_CELL_M, SEEN_FLOOR_BAND_M, SEEN_MAX_DEPTH_M, SEEN_MIN_FRAMES, SeenSurfaces, _cells_ij
 from runtime.watchdog import (
     APPROACH_DECEL_M_S2,
     APPROACH_DELAY_S,
@@ -140,7 +140,7 @@ def test_what_later_frames_see_through_stops_being_a_surface_and_what_they_show_
     # The post below the flight height, the walls beside it, seen in every frame: still there.
     assert seen.clearance_m(POST_XY_M[None], POST_TOP_M + 0.1)[0] <= 0.1
     # the rays that graze the side walls on their way do not clear them: every bin of theirs held is a surface
-    y_m = (((seen._keys >> 8) & 0xFFFFFF) - (1 << 23) + 0.5) * SEEN_CELL_M
+    y_m = (_cells_ij(seen._keys)[:, 1] + 0.5) * SEEN_CELL_M
     walls = (y_m < 0.2) | (y_m > 4.8)
     assert walls.sum() > 100 and np.all(seen._through[walls] == 0)
     # A wall seen through an estimate 0.4 m behind the truth (as PX4's drifted), then through the

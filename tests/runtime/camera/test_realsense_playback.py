@@ -18,6 +18,7 @@ rs = pytest.importorskip(
     "pyrealsense2",
     reason="pyrealsense2 cannot be imported here: it needs `pip install 'cmnav[realsense]'` and the libusb-1.0 system "
     "library (apt-get install libusb-1.0-0)",
+    exc_type=ImportError,  # not installed, or installed without the libusb-1.0 it loads at import
 )
 
 N_FRAMES = 30  # 2 s at 15 Hz

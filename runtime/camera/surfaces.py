@@ -49,7 +49,7 @@ _BIN_OFFSET, _BINS = 40, 160  # bins from 4 m below the local origin to 12 m abo
 # bin stops being a surface once more frames saw through it than showed a surface in it.  Invalid
 # depth clears nothing.
 SEEN_FREE_STEP_M = 0.1  # spacing of the points along a ray whose cells it clears
-SEEN_FREE_START_M = 0.1
+SEEN_FREE_START_M = 0.1  # where along a ray its clearing begins (m from the camera)
 SEEN_FREE_MARGIN_M = 0.15
 SEEN_FREE_MARGIN_PER_M2 = 0.015
 
@@ -93,7 +93,7 @@ class SeenSurfaces:
         np.minimum.at(lowest_m, inverse.reshape(-1), world[:, 2])
         # The bins already holding a surface that this frame's rays pass, but for those next to one
         # it showed (a ray that grazes a wall passes the wall's cells on its way to its hit).
-        passed = self._indices(_bin_keys(origin + _free_points_flu(depth_m, quat)))
+        passed = self._indices(_bin_keys(origin + _free_points_enu(depth_m, quat)))
         beside = self._indices((shown[:, None] + _NEIGHBOUR_KEY_OFFSETS[None, :]).reshape(-1))
         self._through[np.setdiff1d(passed, beside)] += 1
         known = self._indices(shown, unique=False)
@@ -167,7 +167,7 @@ _NEIGHBOUR_KEY_OFFSETS = np.array([(di << (_KEY_BITS + 8)) + (dj << 8) + db for 
                                   dtype=np.int64)  # fmt: skip
 
 
-def _free_points_flu(depth_m: np.ndarray, quat_enu_flu: np.ndarray) -> np.ndarray:
+def _free_points_enu(depth_m: np.ndarray, quat_enu_flu: np.ndarray) -> np.ndarray:
     """(M, 3) points (world-ENU offsets from the camera, m) every ``SEEN_FREE_STEP_M`` along the
     rays of the sampled pixels (``SEEN_SAMPLE_COLS`` x ``SEEN_SAMPLE_ROWS``), from ``SEEN_FREE_START_M``
     to short of what each hit by the margin (at most ``SEEN_MAX_DEPTH_M`` out)."""

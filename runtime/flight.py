@@ -27,7 +27,6 @@ import dataclasses
 import functools
 import gc
 import logging
-import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -668,7 +667,9 @@ class FlightLoop:
             self._after_command(frame, result)
             return False
         cmd_flu = action_to_velocity_flu(result.action_clipped, self.config.policy.limits)
-        if episode.landing_next and state.home_enu_m is not None:  # the brake after the last goal must stop short of what was seen
+        # A dry run's last goal keeps what its frames show (where it lands); the floor is at home's height.
+        maps_surfaces = episode.landing_next and state.home_enu_m is not None
+        if maps_surfaces:  # the brake after the last goal must stop short of what was seen
             cmd_flu, cap_m_s = cap_approach(cmd_flu, state.pos_enu_m, state.yaw_enu_rad, self._goal_enu_m, self._seen)
             episode.note_approach_cap(cap_m_s)
         cmd = velocity_flu_to_mavsdk(cmd_flu)
@@ -683,7 +684,7 @@ class FlightLoop:
         if sent:
             self.watchdog.note_command(t_cmd, cmd_flu)
         self._after_command(frame, result)
-        if episode.landing_next and state.home_enu_m is not None:  # the floor is at home's height
+        if maps_surfaces:
             self._seen.add_frame(frame.depth_m, state.pos_enu_m, state.quat_enu_flu, float(state.home_enu_m[2]))
         self._memory.advance(result)
         stages_ms = {
@@ -799,7 +800,8 @@ class _Episode:
     def note_approach_cap(self, cap_m_s: float | None) -> None:
         if cap_m_s is not None:
             self.approach_capped_steps += 1
-            self.approach_least_cap_m_s = min(cap_m_s, self.approach_least_cap_m_s or math.inf)
+            least = self.approach_least_cap_m_s
+            self.approach_least_cap_m_s = cap_m_s if least is None else min(cap_m_s, least)
 
     def finish(self, outcome: str, reason: str | None, t_ns: int) -> None:
         if self.outcome is None:

@@ -558,10 +558,12 @@ def build_parser() -> argparse.ArgumentParser:
                        help="dataset directories; the train splits of all are trained on, the validation curve stays on "
                        "the first one's val split (e.g. --data runs/data/sim12k runs/data/flights)")  # fmt: skip
     _config_option(cmwae, "--scheme", "training.cmwae.train:CmwaeTrainConfig.scheme",
-                   choices=["s1", "s2", "policy", "none", "stereo"],
+                   choices=["s1", "s2", "policy", "none", "stereo", "stereo-mix"],
                    help="training corruption (none: the clean-depth baseline; policy: the policy's 1-30 px patches at "
                         "S2's coverages, for fine-tuning an encoder to what the student flies with; stereo: the "
-                        "simulated D455's depth a `cmnav dataset --depth stereo` dataset stores, clean depth the target)")  # fmt: skip
+                        "simulated D455's depth a `cmnav dataset --depth stereo` dataset stores, clean depth the target; "
+                        "stereo-mix: half the images that stereo depth, half clean, with S2's squares on a quarter and "
+                        "the policy's patches on another quarter of them)")  # fmt: skip
     cmwae.add_argument("--out", required=True, help="checkpoint directory (model.json + fp16 shards + train state)")
     _config_option(cmwae, "--modalities", "training.cmwae.train:CmwaeTrainConfig.modalities", type=_name_tuple,
                    choices=[("gray", "depth"), ("depth",)], metavar="{gray,depth | depth}",

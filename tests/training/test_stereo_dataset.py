@@ -80,6 +80,28 @@ def test_stereo_scheme_feeds_the_stored_stereo_depth_and_trains(stereo_dataset, 
     assert card["meta"]["val/mse_stereo"] > 0.0
 
 
+def test_stereo_mix_scheme_mixes_stereo_and_clean_bases_under_squares_and_patches(stereo_dataset, tmp_path):
+    batch = 600
+    depth, stereo = torch.full((batch, 1, 224, 224), 0.5), torch.full((batch, 1, 224, 224), 0.25)
+    corrupted, was = _corrupt(depth, "stereo-mix", torch.Generator().manual_seed(0), stereo)
+    kept = corrupted != 0.0  # patches hold zero depth, as missing depth does
+    base_stereo = (corrupted == 0.25).flatten(1).any(dim=1)
+    assert bool(((corrupted == 0.5) | (corrupted == 0.25) | ~kept).all())
+    assert 0.4 < float(base_stereo.float().mean()) < 0.6
+    lost = 1.0 - kept.flatten(1).float().mean(dim=1)
+    patched = lost > 0.0
+    assert 0.4 < float(patched.float().mean()) < 0.6  # a quarter squares, a quarter patches
+    assert float(lost[patched].max()) <= 0.7 and float(lost[patched].min()) >= 0.15  # a 100 px square is a fifth
+    assert torch.equal(was, base_stereo | patched)  # degraded: every stereo image and every patched one, no other
+    with pytest.raises(ValueError, match="--depth stereo"):
+        _corrupt(depth, "stereo-mix", torch.Generator())
+
+    out = tmp_path / "cmwae"
+    _cmnav("train", "cmwae", "--size", "tiny", "--batch-size", "4", "--workers", "0", "--data", str(stereo_dataset),
+           "--scheme", "stereo-mix", "--out", str(out), "--steps", "2")  # fmt: skip
+    assert read_card(out, "cmwae")["meta"]["val/mse_stereo"] > 0.0
+
+
 def test_cli_refuses_stereo_options_where_they_do_not_apply(tmp_path):
     proc = _cmnav("dataset", "--out", str(tmp_path / "x"), "--count", "2", "--stereo-projector-off-fraction", "0.2", ok=False)
     assert "applies to --depth stereo" in proc.stderr

@@ -30,8 +30,15 @@ from .model import MODALITIES, Cmwae, CmwaeConfig, make_config
 log = logging.getLogger(__name__)
 CHECKPOINT_KIND = "cmwae"
 # stereo: the corrupted input is the simulated D455's depth the dataset stores for each frame
-# (`cmnav dataset --depth stereo`), the target its clean rendered depth.
-CORRUPTION_SCHEMES = ("s1", "s2", "policy", "none", "stereo")
+# (`cmnav dataset --depth stereo`), the target its clean rendered depth.  stereo-mix: what a
+# deployed encoder meets, mixed per image: the stored stereo depth on STEREO_MIX_STEREO_FRACTION of
+# the images (the clean depth on the rest), then, on top, one of STEREO_MIX_OVERLAYS drawn per image
+# with its own pristine share: S2's 100 px squares on a quarter of all, the policy's 1-30 px
+# patches on another quarter; the target is the clean depth.
+STEREO_SCHEMES = ("stereo", "stereo-mix")
+CORRUPTION_SCHEMES = ("s1", "s2", "policy", "none", *STEREO_SCHEMES)
+STEREO_MIX_STEREO_FRACTION = 0.5
+STEREO_MIX_OVERLAYS = ("s2", "policy")
 
 
 @dataclass(frozen=True)
@@ -127,16 +134,34 @@ def learning_rate(config: CmwaeTrainConfig, step: int, total_steps: int) -> floa
 
 def _corrupt(depth: torch.Tensor, scheme: str, generator: torch.Generator,
              stereo: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
-    """(corrupted depth, [B] bool: which images lost pixels); ``stereo``: the stored stereo depth
-    of the batch (scheme "stereo"), every image of which is degraded."""
+    """(corrupted depth, [B] bool: which images were degraded); ``stereo``: the stored stereo depth
+    of the batch (the stereo schemes)."""
+    if scheme in STEREO_SCHEMES and stereo is None:
+        raise ValueError(f"scheme {scheme!r} needs the stereo depth of each frame: a `cmnav dataset --depth stereo` dataset")
     if scheme == "stereo":
-        if stereo is None:
-            raise ValueError("scheme 'stereo' needs the stereo depth of each frame: a `cmnav dataset --depth stereo` dataset")
         return stereo, torch.ones(depth.shape[0], dtype=torch.bool)
+    if scheme == "stereo-mix":
+        return _stereo_mix(depth, stereo, generator)
     if scheme == "none":
         return depth, torch.zeros(depth.shape[0], dtype=torch.bool)
     corrupted, masks = corrupt_with_scheme(depth, SCHEMES[scheme], generator)
     return corrupted, masks.flatten(1).any(dim=1)
+
+
+def _stereo_mix(depth: torch.Tensor, stereo: torch.Tensor, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Scheme "stereo-mix" (see STEREO_MIX_STEREO_FRACTION): each image's base is its stereo or its
+    clean depth; one of STEREO_MIX_OVERLAYS' patch schemes is drawn on top of it."""
+    batch = depth.shape[0]
+    use_stereo = torch.rand(batch, generator=generator) < STEREO_MIX_STEREO_FRACTION
+    corrupted = torch.where(use_stereo[:, None, None, None], stereo, depth)
+    overlay = torch.randint(len(STEREO_MIX_OVERLAYS), (batch,), generator=generator)
+    masked = torch.zeros(batch, dtype=torch.bool)
+    for k, name in enumerate(STEREO_MIX_OVERLAYS):
+        patched, masks = corrupt_with_scheme(corrupted, SCHEMES[name], generator)
+        hit = (overlay == k) & masks.flatten(1).any(dim=1)
+        corrupted = torch.where(hit[:, None, None, None], patched, corrupted)
+        masked |= hit
+    return corrupted, use_stereo | masked
 
 
 @torch.no_grad()
@@ -184,7 +209,7 @@ def train_cmwae(config: CmwaeTrainConfig) -> Path:
 def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Path:
     out = Path(config.out_dir)
     torch.manual_seed(config.seed)
-    dataset = GrayDepthStereoDataset if config.scheme == "stereo" else GrayDepthDataset
+    dataset = GrayDepthStereoDataset if config.scheme in STEREO_SCHEMES else GrayDepthDataset
     train_set = ConcatDataset([dataset(d, "train") for d in (config.data_dir, *config.extra_data_dirs)])
     val_set = dataset(config.data_dir, "val")
     sampler = DistributedSampler(train_set, seed=config.seed) if info.enabled else None
@@ -235,7 +260,7 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
         val = {f"val/mse_{int(c * 100)}pct": validation_mse(model, val_loader, device, c, config.val_images, config.seed, path)
                for c in (0.0, 0.5)}  # fmt: skip
         val["val/mse_ratio_50_over_0"] = val["val/mse_50pct"] / max(val["val/mse_0pct"], 1e-12)
-        if config.scheme == "stereo":
+        if config.scheme in STEREO_SCHEMES:
             val["val/mse_stereo"] = validation_stereo_mse(model, val_loader, device, config.val_images, path)
         if writer is not None:
             writer.add_scalars(step, val)

@@ -439,6 +439,10 @@ def build_parser() -> argparse.ArgumentParser:
                       "less its error against the rate of its own position, and every setpoint corrected by it, so the "
                       "vehicle flies the command; runtime/tracking.py) or off (the estimate as reported) "
                       "(default correct)")  # fmt: skip
+    sitl.add_argument("--approach-cap", default="on", choices=["on", "off"],
+                      help="the runtime's mission.approach_cap: within 3 m of the goal the command is slowed so that the "
+                      "brake after it stops 0.5 m short of the surfaces seen ahead (on), or flown as the policy gives "
+                      "it (off) (default on)")  # fmt: skip
     sitl.add_argument(
         "--inject", action="append", default=[], metavar="KIND@SECONDS",
         help="inject a fault SECONDS after offboard start (repeatable): camera-stall, camera-garbage, "

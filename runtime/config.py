@@ -491,6 +491,10 @@ class MissionConfig:
     # it holds its position estimate where the descent began) instead of the autopilot's Land, which
     # holds the position *estimate* and drifted 0.2-1 m with it while descending on PX4 SIH.
     land_in_offboard: bool = True
+    # With allow_arm_takeoff: within 3 m of the (last) goal, cap the horizontal command so that the
+    # brake after the goal stops 0.5 m short of the surfaces the depth frames showed ahead
+    # (runtime.watchdog.cap_approach; never below 0.3 m/s).  false: the policy's command as it is.
+    approach_cap: bool = True
 
     def __post_init__(self) -> None:
         _require(self.goal_source in GOAL_SOURCES, "mission.goal_source", self.goal_source, f"one of {', '.join(GOAL_SOURCES)}")
@@ -517,6 +521,7 @@ class MissionConfig:
         _within("mission.land_clearance_m", self.land_clearance_m, 0.2, 3.0, "m", "the vehicle's radius and the landing's drift")
         _within("mission.land_way_clearance_m", self.land_way_clearance_m, 0.2, 3.0, "m", "the vehicle's radius and the retreat's drift")
         _require(isinstance(self.land_in_offboard, bool), "mission.land_in_offboard", self.land_in_offboard, "true or false")
+        _require(isinstance(self.approach_cap, bool), "mission.approach_cap", self.approach_cap, "true or false")
         _require(
             isinstance(self.max_episodes, int) and self.max_episodes >= 0,
             "mission.max_episodes",

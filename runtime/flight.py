@@ -669,7 +669,7 @@ class FlightLoop:
         cmd_flu = action_to_velocity_flu(result.action_clipped, self.config.policy.limits)
         # A dry run's last goal keeps what its frames show (where it lands); the floor is at home's height.
         maps_surfaces = episode.landing_next and state.home_enu_m is not None
-        if maps_surfaces:  # the brake after the last goal must stop short of what was seen
+        if maps_surfaces and self.config.mission.approach_cap:  # the brake after the last goal must stop short of what was seen
             cmd_flu, cap_m_s = cap_approach(cmd_flu, state.pos_enu_m, state.yaw_enu_rad, self._goal_enu_m, self._seen)
             episode.note_approach_cap(cap_m_s)
         cmd = velocity_flu_to_mavsdk(cmd_flu)

@@ -9,6 +9,7 @@
 # report), px4-logs/ (PX4's console per flight).  SEED_START (default 7001), TIMEOUT_S (20),
 # INJECT (e.g. "camera-stall@3": passed to every flight as --inject), DEGRADE (the camera's depth,
 # `cmnav sitl --degrade`: none, projector-off, stereo or stereo-projector-off; default none),
+# APPROACH_CAP (`cmnav sitl --approach-cap`: on or off; default on),
 # CMNAV / PYTHON as in scripts/sitl-campaign.sh.  PX4 never runs outside this script's flights; nothing binds
 # anything but 127.0.0.1 on our side.
 set -euo pipefail
@@ -19,6 +20,7 @@ SEED_START=${SEED_START:-7001}
 TIMEOUT_S=${TIMEOUT_S:-20}
 INJECT=${INJECT:-}
 DEGRADE=${DEGRADE:-none}
+APPROACH_CAP=${APPROACH_CAP:-on}
 CMNAV=${CMNAV:-.venv/bin/cmnav}
 PYTHON=${PYTHON:-.venv/bin/python}
 [ -x "$build/bin/px4" ] || { echo "error: no PX4 binary at $build/bin/px4: build PX4 as docs/px4-sitl.md says" >&2; exit 2; }
@@ -40,7 +42,7 @@ for level in $LEVELS; do
         >"$OUT/px4-logs/level${level}-seed${seed}.log" 2>&1 </dev/null) &
     px4_pid=$!
     summary=$("$CMNAV" sitl --autopilot udp://127.0.0.1:14550 --model "$MODEL" --level "$level" --seed "$seed" \
-        --timeout "$TIMEOUT_S" --degrade "$DEGRADE" --out "$OUT/runs" --json "${inject_args[@]}" 2>>"$OUT/sitl.log" | tail -n 1) || true
+        --timeout "$TIMEOUT_S" --degrade "$DEGRADE" --approach-cap "$APPROACH_CAP" --out "$OUT/runs" --json "${inject_args[@]}" 2>>"$OUT/sitl.log" | tail -n 1) || true
     stop_px4
     if [ -z "$summary" ]; then
       # No episode (e.g. PX4's take-off never reached its height): not in the table; sitl.log says why.

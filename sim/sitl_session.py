@@ -130,6 +130,7 @@ class SitlRequest:
     degrade: str = "none"
     estimate: str = "exact"  # our SITL vehicle's state estimate (sim.sitl.estimate.ESTIMATES)
     velocity_bias: str = "correct"  # the runtime's vehicle.velocity_bias_correction: correct | off
+    approach_cap: str = "on"  # the runtime's mission.approach_cap: on | off
     # Pinning (cmnav bench runtime): the runtime process pins itself (runtime.cpu_affinity) and
     # runs ONNX Runtime with runtime_threads intra-op threads; the vehicle is started pinned.
     runtime_cpus: tuple[int, ...] = ()
@@ -261,7 +262,7 @@ def _run_processes(
                  "--goal-rel-home=" + ",".join(f"{v:.4f}" for v in episode["goal_rel_home_enu_m"]),  # "=": may start with "-"
                  "--takeoff-alt-m", f"{episode['takeoff_alt_m']:.3f}", "--timeout-s", str(request.timeout_s),
                  "--log-dir", str(run_dir), "--summary", str(summary_path), *request.injections_at(FaultSite.RUNTIME),
-                 "--velocity-bias", request.velocity_bias,
+                 "--velocity-bias", request.velocity_bias, "--approach-cap", request.approach_cap,
                  "--cpu-affinity", ",".join(map(str, request.runtime_cpus)), "--intra-op-threads", str(request.runtime_threads)],
                 stdout=runtime_out, stderr=subprocess.STDOUT, env=env, start_new_session=True,
             )  # fmt: skip
@@ -522,7 +523,8 @@ def run_sitl_cli(args: argparse.Namespace) -> int:
         return 2
     request = SitlRequest(Path(args.model), args.level, args.seed, args.timeout, Path(args.out), injections, args.degrade,
                           estimate=getattr(args, "estimate", "exact"),
-                          velocity_bias=getattr(args, "velocity_bias", "correct"))  # fmt: skip
+                          velocity_bias=getattr(args, "velocity_bias", "correct"),
+                          approach_cap=getattr(args, "approach_cap", "on"))  # fmt: skip
     if getattr(args, "autopilot", None) is not None:
         try:
             request = autopilot_request(request, args.autopilot, args.offboard_port, args.allow_remote)

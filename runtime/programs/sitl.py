@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera.sim_source import SimCameraSource
-from ..config import PolicyModelConfig, ProcessConfig, RecorderConfig, RuntimeConfig, VehicleConfig
+from ..config import MissionConfig, PolicyModelConfig, ProcessConfig, RecorderConfig, RuntimeConfig, VehicleConfig
 from ..tracking import VELOCITY_BIAS_MODES
 from ..contract import ContractMismatchError
 from ..faults.catalogue import FaultKind, FaultSite, Injection, InjectionError, parse_injection
@@ -93,6 +93,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--intra-op-threads", type=int, default=0, help="ONNX Runtime intra-op threads (0 = its default)")
     parser.add_argument("--velocity-bias", choices=VELOCITY_BIAS_MODES, default="correct",
                         help="vehicle.velocity_bias_correction: correct the autopilot's velocity error (default) or off")
+    parser.add_argument("--approach-cap", choices=("on", "off"), default="on",
+                        help="mission.approach_cap: slow the approach to the goal to what the brake stops in (default) or off")
     parser.add_argument("--inject", action="append", default=[], metavar="KIND@SECONDS",
                         help="fault injection for tests (repeatable): inference-overrun, nan-action or geofence, "
                         "SECONDS after offboard start")  # fmt: skip
@@ -121,18 +123,24 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
+def runtime_config(args: argparse.Namespace) -> RuntimeConfig:
+    """The runtime's configuration for one SITL episode (``parse_args``' namespace)."""
+    return RuntimeConfig(
+        policy=args.policy,
+        vehicle=VehicleConfig(url=f"udpin://127.0.0.1:{args.mavlink_port}",
+                              velocity_bias_correction=args.velocity_bias == "correct"),
+        mission=MissionConfig(approach_cap=args.approach_cap == "on"),
+        recorder=RecorderConfig(log_dir=args.log_dir),
+        runtime=args.process,
+    )
+
+
 async def fly_episode(args: argparse.Namespace, summary: dict, signals: StopSignals | None = None) -> EpisodeResult:
     """Everything between process start and disarm; fills ``summary`` as it goes.  On a stop
     signal (``signals``) it commands the safe state of the phase it interrupted (``runtime.programs.stop``),
     records ``summary["stop"]`` and what was flown, and re-raises the cancellation."""
     flight = FlightPhase()
-    config = RuntimeConfig(
-        policy=args.policy,
-        vehicle=VehicleConfig(url=f"udpin://127.0.0.1:{args.mavlink_port}",
-                              velocity_bias_correction=args.velocity_bias == "correct"),
-        recorder=RecorderConfig(log_dir=args.log_dir),
-        runtime=args.process,
-    )
+    config = runtime_config(args)
     pinned = prepare_control_process(config.runtime.cpu_affinity)  # before ONNX Runtime's and MAVSDK's threads
     if pinned is not None:
         summary["cpu_affinity"] = list(pinned)

@@ -299,6 +299,9 @@ def test_the_approach_to_the_last_goal_is_no_faster_than_the_brake_stops_in_befo
     assert cap_approach(toward, at, 0.0, goal, SeenSurfaces())[1] is None
     # Stopped already (no horizontal command): nothing to cap.
     assert cap_approach(np.array([0.0, 0.0, 0.5, 0.0]), at, 0.0, goal, seen)[1] is None
+    assert MissionConfig().approach_cap is True
+    with pytest.raises(ConfigError, match="mission.approach_cap"):
+        MissionConfig(approach_cap="off")
 
 
 class RenderingCamera:
@@ -378,10 +381,10 @@ def test_the_approach_to_a_goal_near_the_wall_slows_so_that_the_brake_stops_shor
     assert result.outcome == "success" and result.approach_cap["capped_steps"] > 0, result
     assert result.approach_cap["least_cap_m_s"] < 1.5, result.approach_cap
     capped_gap_m, capped_speed_m_s = 8.0 - vehicle.max_x_m, vehicle.speed_there_m_s
-    # The policy's command as it was (no cap): the brake carries the vehicle nearer the wall.
-    monkeypatch.setattr("runtime.flight.cap_approach", lambda cmd_flu, *_: (cmd_flu, None))
+    # The policy's command as it was (mission.approach_cap off): the brake carries the vehicle nearer the wall.
     vehicle = NearestToTheWall(goal[0] - 1.0)
-    result, _, _ = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, goal, 1.5, RenderingCamera(_room(), vehicle), land_in_offboard=True, **SITE))
+    result, _, _ = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, goal, 1.5, RenderingCamera(_room(), vehicle), land_in_offboard=True,
+                                                approach_cap=False, **SITE))  # fmt: skip
     assert result.outcome == "success" and result.approach_cap == {"capped_steps": 0, "least_cap_m_s": None}, result
     # Seen here (a vehicle lagging 0.8 s behind its command): 0.82 m left to the wall, 1.74 m/s at
     # most in the goal's 1 m, against 0.65 m and 1.98 m/s.

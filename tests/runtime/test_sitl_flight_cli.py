@@ -42,3 +42,12 @@ def test_vehicle_faults_are_not_injected_by_the_runtime(tmp_path):
     proc = _run(*_args(tmp_path, tmp_path / "m.onnx"), "--inject", "camera-stall@2")
     assert proc.returncode == 2
     assert "unknown fault kind 'camera-stall' here; expected one of geofence, inference-overrun, nan-action" in proc.stderr
+
+
+def test_the_runtime_switches_reach_its_configuration(tmp_path):
+    from runtime.programs.sitl import parse_args, runtime_config
+
+    default = runtime_config(parse_args(_args(tmp_path, tmp_path / "m.onnx")))
+    assert default.mission.approach_cap and default.vehicle.velocity_bias_correction
+    off = runtime_config(parse_args([*_args(tmp_path, tmp_path / "m.onnx"), "--approach-cap", "off", "--velocity-bias", "off"]))
+    assert not off.mission.approach_cap and not off.vehicle.velocity_bias_correction

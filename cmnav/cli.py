@@ -737,7 +737,10 @@ def build_parser() -> argparse.ArgumentParser:
         except ValueError:
             raise argparse.ArgumentTypeError(f"{text!r}: expected MIN-MAX in px, e.g. 1-50 or 100-100") from None
 
-    eval_cmwae = eval_sub.add_parser("cmwae", help="Table I: MSE/SSIM at 0-50%% evaluation corruption on the held-out split")
+    eval_cmwae = eval_sub.add_parser("cmwae", help="Table I: MSE/SSIM at 0-50%% evaluation corruption on the held-out split",
+                                     description="Table I: MSE/SSIM at 0-50%% evaluation corruption on the held-out split; on a "
+                                     "`cmnav dataset --depth stereo` dataset also with its stereo depth as the input, "
+                                     "projector on and off apart.")  # fmt: skip
     eval_cmwae.add_argument("--checkpoint", required=True, help="checkpoint directory")
     eval_cmwae.add_argument("--data", required=True, help="dataset directory")
     _config_option(eval_cmwae, "--split", "training.cmwae.evaluate:CmwaeEvalConfig.split", choices=["train", "val", "test"], help="dataset split")

@@ -101,6 +101,18 @@ def test_stereo_mix_scheme_mixes_stereo_and_clean_bases_under_squares_and_patche
            "--scheme", "stereo-mix", "--out", str(out), "--steps", "2")  # fmt: skip
     assert read_card(out, "cmwae")["meta"]["val/mse_stereo"] > 0.0
 
+    # Table I adds the stored stereo depth as the input, a row per projector state.
+    result = json.loads(_cmnav("eval", "cmwae", "--checkpoint", str(out), "--data", str(stereo_dataset), "--split", "train",
+                               "--json").stdout.strip().splitlines()[-1])  # fmt: skip
+    inputs = [row["input"] for row in result["stereo_rows"]]
+    manifest = json.loads((stereo_dataset / "manifest.json").read_text())
+    train = GrayDepthStereoDataset(stereo_dataset, "train").samples
+    on = sum(manifest["stereo"]["projector_on"][s.trajectory.split("/")[0]][int(s.image_path.name[:6])] for s in train)
+    assert {row["input"]: row["images"] for row in result["stereo_rows"]} == {
+        k: n for k, n in (("stereo, projector on", on), ("stereo, projector off", len(train) - on)) if n}
+    assert all(row["mse_e3"] > 0.0 and row["latent_shift_over_var"] > 0.0 for row in result["stereo_rows"])
+    assert all(f"| {name} |" in result["table"] for name in inputs)
+
 
 def test_cli_refuses_stereo_options_where_they_do_not_apply(tmp_path):
     proc = _cmnav("dataset", "--out", str(tmp_path / "x"), "--count", "2", "--stereo-projector-off-fraction", "0.2", ok=False)

@@ -8,7 +8,9 @@ teacher's-view MSE, the error of the nearest surface per cell of the teacher's 1
 (what the privileged teacher flies on, so what the student's latent has to carry); and the
 latent shift, what the policy sees of the corruption: the mean squared distance per dimension of
 the latent of corrupted depth from the latent of the same pair with clean depth, over the clean
-latents' variance per dimension (0: corruption leaves the latent where it was).
+latents' variance per dimension (0: corruption leaves the latent where it was).  On a dataset with
+the simulated D455's depth (`cmnav dataset --depth stereo`), a second table has it as the input,
+a row per projector state, scored the same way against the clean depth.
 
 The table needs only torch: SSIM comes from pytorch-msssim, or from its wheel in vendor/ where it
 is not installed (training.vendored).  The plots are drawn with OpenCV and skipped, with one
@@ -17,7 +19,7 @@ warning, where it is missing (the offline GPU machine); ``plots`` then lists onl
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +29,7 @@ from torch.utils.data import DataLoader
 from sim.degradation import EVALUATION_COVERAGES, EVALUATION_PATCH_SIDES_PX, corrupt_depth, evaluation_scheme, patch_masks
 from sim.plot import opencv_for_drawing
 
-from ..data.tartanair import GrayDepthDataset
+from ..data.tartanair import DatasetError, GrayDepthDataset, GrayDepthStereoDataset
 from ..fastpath import choose_fast_path
 from ..vendored import import_vendored
 from .loss import NEAR_SURFACE_M, near_surface_mask, pooled_nearest_error
@@ -61,64 +63,30 @@ def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
     model = path.prepare_trained(model)
     dataset = GrayDepthDataset(config.data_dir, config.split)
     loader = DataLoader(dataset, batch_size=config.batch_size, num_workers=0)
-    per_coverage: dict[float, dict[str, list[float]]] = {}
+    scorer = _Scorer(model, path, config)
+    per_coverage: dict[float, _Scores] = {}
     examples: dict[float, tuple] = {}
-    clean_latents: list[torch.Tensor] = []  # per batch, from the first coverage's pass
     for coverage in config.coverages:
         generator = torch.Generator().manual_seed(config.seed)  # same patches for every model
-        mse, sim, actual, near_mse, near_share, pooled_mse, latent_shift = [], [], [], [], [], [], []
-        seen = 0
-        for batch, (gray, depth) in enumerate(loader):
-            if config.max_images is not None:
-                if seen >= config.max_images:
-                    break
-                gray, depth = gray[: config.max_images - seen], depth[: config.max_images - seen]
+        scores = _Scores()
+        for batch, (gray, depth) in enumerate(_limited(loader, config.max_images)):
             masks = patch_masks(torch.full((depth.shape[0],), coverage), schemes[coverage], generator)
             corrupted = corrupt_depth(depth, masks)
-            gray_in = path.image(gray.to(config.device))
-            with path.autocast(config.device):
-                z, recon = model(gray_in, path.image(corrupted.to(config.device)))
-                if batch == len(clean_latents):
-                    clean_latents.append(model.encoder(gray_in, path.image(depth.to(config.device))).float().cpu())
-            latent_shift += ((z.float().cpu() - clean_latents[batch]) ** 2).mean(dim=1).tolist()
-            recon = recon.float().cpu()
-            squared = (recon - depth) ** 2
-            mse += squared.mean(dim=(1, 2, 3)).tolist()
-            near = near_surface_mask(depth, config.near_m)
-            near_count = near.sum(dim=(1, 2, 3))
-            near_share += (near_count / near[0].numel()).tolist()
-            near_mse += [v for v, k in zip(((squared * near).sum(dim=(1, 2, 3)) / near_count.clamp(min=1)).tolist(),
-                                           near_count.tolist()) if k > 0]  # fmt: skip
-            pooled_mse += pooled_nearest_error(recon, depth).tolist()
-            sim += ssim(recon, depth, data_range=1.0, size_average=False).tolist()
-            actual += masks.float().mean(dim=(1, 2)).tolist()
+            recon = scorer.score(scores, batch, gray, depth, corrupted)
+            scores.coverage += masks.float().mean(dim=(1, 2)).tolist()
             if coverage not in examples:
                 examples[coverage] = (gray[:4], corrupted[:4], recon[:4], depth[:4])
-            seen += depth.shape[0]
-        per_coverage[coverage] = {"mse": mse, "ssim": sim, "coverage": actual, "near_mse": near_mse, "near_share": near_share,
-                                  "pooled_mse": pooled_mse, "latent_shift": latent_shift}  # fmt: skip
-    latent_var = float(torch.cat(clean_latents).var(dim=0).mean())
-    rows = [
-        {
-            "corruption_pct": int(round(c * 100)),
-            "actual_coverage_pct": round(100 * float(np.mean(v["coverage"])), 2),
-            "mse_e3": round(1e3 * float(np.mean(v["mse"])), 3),
-            "ssim_e2": round(1e2 * float(np.mean(v["ssim"])), 2),
-            "near_mse_e3": round(1e3 * float(np.mean(v["near_mse"])), 3) if v["near_mse"] else None,
-            "near_images": len(v["near_mse"]),
-            "near_pixels_pct": round(100 * float(np.mean(v["near_share"])), 2),
-            "teacher_view_mse_e3": round(1e3 * float(np.mean(v["pooled_mse"])), 3),
-            "latent_shift_over_var": float(f"{float(np.mean(v['latent_shift'])) / max(latent_var, 1e-12):.4g}"),
-            "images": len(v["mse"]),
-        }
-        for c, v in per_coverage.items()
-    ]
+        per_coverage[coverage] = scores
+    latent_var = scorer.latent_var()
+    rows = [{"corruption_pct": int(round(c * 100)), "actual_coverage_pct": round(100 * float(np.mean(v.coverage)), 2),
+             **v.summary(latent_var)} for c, v in per_coverage.items()]  # fmt: skip
+    stereo_rows = _stereo_rows(scorer, config, latent_var)
     out = Path(config.out_dir) if config.out_dir else Path(config.checkpoint) / "eval"
     out.mkdir(parents=True, exist_ok=True)
     labels = [f"{r['corruption_pct']}%" for r in rows]
     plots = {
-        "mse": box_plot(out / "mse_boxplot.png", labels, [1e3 * np.asarray(v["mse"]) for v in per_coverage.values()], "MSE x1e-3"),
-        "ssim": box_plot(out / "ssim_boxplot.png", labels, [1e2 * np.asarray(v["ssim"]) for v in per_coverage.values()], "SSIM x1e-2"),
+        "mse": box_plot(out / "mse_boxplot.png", labels, [1e3 * np.asarray(v.mse) for v in per_coverage.values()], "MSE x1e-3"),
+        "ssim": box_plot(out / "ssim_boxplot.png", labels, [1e2 * np.asarray(v.ssim) for v in per_coverage.values()], "SSIM x1e-2"),
         "examples": example_grid(out / "examples.png", examples),
     }  # fmt: skip
     result = {
@@ -132,7 +100,8 @@ def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
         "rows": rows,
         "near_m": config.near_m,
         "latent_var": float(f"{latent_var:.4g}"),
-        "table": markdown_table(rows, config.near_m),
+        "table": markdown_table(rows, config.near_m) + (f"\n\n{stereo_table(stereo_rows, config.near_m)}" if stereo_rows else ""),
+        "stereo_rows": stereo_rows,
         "mse_ratio_50_over_0": _ratio(rows),
         "out_dir": str(out),
         "plots": {name: str(path) for name, path in plots.items() if path is not None},
@@ -141,18 +110,123 @@ def evaluate_cmwae(config: CmwaeEvalConfig) -> dict:
     return result
 
 
+@dataclass
+class _Scores:
+    """Per-image scores of one input kind (a coverage, or the stereo depth)."""
+
+    mse: list[float] = field(default_factory=list)
+    ssim: list[float] = field(default_factory=list)
+    coverage: list[float] = field(default_factory=list)
+    near_mse: list[float | None] = field(default_factory=list)  # None: an image without near pixels
+    near_share: list[float] = field(default_factory=list)
+    pooled_mse: list[float] = field(default_factory=list)
+    latent_shift: list[float] = field(default_factory=list)
+
+    def summary(self, latent_var: float) -> dict:
+        near_mse = [v for v in self.near_mse if v is not None]
+        return {
+            "mse_e3": round(1e3 * float(np.mean(self.mse)), 3),
+            "ssim_e2": round(1e2 * float(np.mean(self.ssim)), 2),
+            "near_mse_e3": round(1e3 * float(np.mean(near_mse)), 3) if near_mse else None,
+            "near_images": len(near_mse),
+            "near_pixels_pct": round(100 * float(np.mean(self.near_share)), 2),
+            "teacher_view_mse_e3": round(1e3 * float(np.mean(self.pooled_mse)), 3),
+            "latent_shift_over_var": float(f"{float(np.mean(self.latent_shift)) / max(latent_var, 1e-12):.4g}"),
+            "images": len(self.mse),
+        }
+
+
+class _Scorer:
+    """Reconstructs batches and scores them against the clean depth; the clean latents of the
+    first pass over the loader (batch by batch) are the reference of every latent shift."""
+
+    def __init__(self, model, path, config: CmwaeEvalConfig) -> None:
+        self.model, self.path, self.config = model, path, config
+        self.clean_latents: list[torch.Tensor] = []
+
+    def score(self, scores: _Scores, batch: int, gray: torch.Tensor, depth: torch.Tensor, corrupted: torch.Tensor) -> torch.Tensor:
+        """Adds the batch's scores to ``scores``; returns the reconstruction."""
+        device, path = self.config.device, self.path
+        gray_in = path.image(gray.to(device))
+        with path.autocast(device):
+            z, recon = self.model(gray_in, path.image(corrupted.to(device)))
+            if batch == len(self.clean_latents):
+                self.clean_latents.append(self.model.encoder(gray_in, path.image(depth.to(device))).float().cpu())
+        scores.latent_shift += ((z.float().cpu() - self.clean_latents[batch]) ** 2).mean(dim=1).tolist()
+        recon = recon.float().cpu()
+        squared = (recon - depth) ** 2
+        scores.mse += squared.mean(dim=(1, 2, 3)).tolist()
+        near = near_surface_mask(depth, self.config.near_m)
+        near_count = near.sum(dim=(1, 2, 3))
+        scores.near_share += (near_count / near[0].numel()).tolist()
+        scores.near_mse += [v if k > 0 else None for v, k in
+                            zip(((squared * near).sum(dim=(1, 2, 3)) / near_count.clamp(min=1)).tolist(), near_count.tolist())]  # fmt: skip
+        scores.pooled_mse += pooled_nearest_error(recon, depth).tolist()
+        scores.ssim += ssim(recon, depth, data_range=1.0, size_average=False).tolist()
+        return recon
+
+    def latent_var(self) -> float:
+        return float(torch.cat(self.clean_latents).var(dim=0).mean())
+
+
+def _limited(loader: DataLoader, max_images: int | None):
+    """The loader's batches, cut to ``max_images`` images in all."""
+    seen = 0
+    for batch in loader:
+        if max_images is not None:
+            if seen >= max_images:
+                return
+            batch = [t[: max_images - seen] for t in batch]
+        seen += batch[0].shape[0]
+        yield batch
+
+
+def _stereo_rows(scorer: _Scorer, config: CmwaeEvalConfig, latent_var: float) -> list[dict]:
+    """Where the dataset stores the simulated D455's depth (`cmnav dataset --depth stereo`): the
+    same images with it as the input, projector on and off apart (rows), against the clean depth."""
+    try:
+        dataset = GrayDepthStereoDataset(config.data_dir, config.split)
+    except DatasetError:
+        return []  # no stereo depth: Table I's rows only
+    projector = json.loads((Path(config.data_dir) / "manifest.json").read_text())["stereo"]["projector_on"]
+    on = [projector[s.trajectory.split("/")[0]][int(s.image_path.name.split("_")[0])] for s in dataset.samples]
+    by_projector = {True: _Scores(), False: _Scores()}
+    loader = DataLoader(dataset, batch_size=config.batch_size, num_workers=0)
+    first = 0
+    for batch, (gray, depth, stereo) in enumerate(_limited(loader, config.max_images)):
+        both = _Scores()
+        scorer.score(both, batch, gray, depth, stereo)
+        for k, projector_on in enumerate(on[first : first + depth.shape[0]]):
+            for name, values in vars(both).items():
+                if values:  # all but coverage
+                    getattr(by_projector[projector_on], name).append(values[k])
+        first += depth.shape[0]
+    return [{"input": f"stereo, projector {'on' if key else 'off'}", **scores.summary(latent_var)}
+            for key, scores in by_projector.items() if scores.mse]  # fmt: skip
+
+
 def _ratio(rows: list[dict]) -> float | None:
     by = {r["corruption_pct"]: r["mse_e3"] for r in rows}
     return round(by[50] / by[0], 3) if 0 in by and 50 in by and by[0] > 0 else None
 
 
 def markdown_table(rows: list[dict], near_m: float) -> str:
-    lines = [f"| corruption | MSE (x10^-3) | SSIM (x10^-2) | MSE < {near_m:g} m (x10^-3) | teacher's view MSE (x10^-3) | "
+    """Table I: a row per coverage."""
+    return _table("corruption", [f"{r['corruption_pct']}%" for r in rows], rows, near_m)
+
+
+def stereo_table(rows: list[dict], near_m: float) -> str:
+    """The stereo depth as the input: a row per projector state."""
+    return _table("input", [r["input"] for r in rows], rows, near_m)
+
+
+def _table(what: str, labels: list[str], rows: list[dict], near_m: float) -> str:
+    lines = [f"| {what} | MSE (x10^-3) | SSIM (x10^-2) | MSE < {near_m:g} m (x10^-3) | teacher's view MSE (x10^-3) | "
              "latent shift / var | images (with near pixels) |", "|---|---|---|---|---|---|---|"]  # fmt: skip
-    lines += [f"| {r['corruption_pct']}% | {r['mse_e3']:.2f} | {r['ssim_e2']:.2f} | "
+    lines += [f"| {label} | {r['mse_e3']:.2f} | {r['ssim_e2']:.2f} | "
               f"{'-' if r['near_mse_e3'] is None else format(r['near_mse_e3'], '.2f')} | {r['teacher_view_mse_e3']:.2f} | "
               f"{r['latent_shift_over_var']:.3f} | "
-              f"{r['images']} ({r['near_images']}) |" for r in rows]  # fmt: skip
+              f"{r['images']} ({r['near_images']}) |" for label, r in zip(labels, rows)]  # fmt: skip
     return "\n".join(lines)
 
 

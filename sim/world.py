@@ -126,6 +126,28 @@ class WorldBatch:
             idx = torch.as_tensor(idx, dtype=torch.long, device=self.device)
         return WorldBatch(**{f.name: getattr(self, f.name)[idx] for f in fields(self)})
 
+    @classmethod
+    def from_descriptions(cls, descriptions: Sequence[dict], device: torch.device | str = "cpu") -> WorldBatch:
+        """The batch of the rooms ``describe`` gave (the inverse of it), boxes padded to the most any has."""
+        slots = max(1, max(len(d["boxes"]) for d in descriptions))
+
+        def boxes(key: str, empty: object) -> list:
+            return [[b[key] for b in d["boxes"]] + [empty] * (slots - len(d["boxes"])) for d in descriptions]
+
+        def tensor(values: object, dtype: torch.dtype = torch.float32) -> Tensor:
+            return torch.tensor(values, dtype=dtype, device=device)
+
+        return cls(
+            room_size_m=tensor([d["room_size_m"] for d in descriptions]),
+            box_center_m=tensor(boxes("center_m", [0.0, 0.0, 0.0])),
+            box_half_extent_m=tensor(boxes("half_extent_m", [0.0, 0.0, 0.0])),
+            box_yaw_rad=tensor(boxes("yaw_rad", 0.0)),
+            box_valid=tensor([[True] * len(d["boxes"]) + [False] * (slots - len(d["boxes"])) for d in descriptions], torch.bool),
+            start_m=tensor([d["start_m"] for d in descriptions]),
+            goal_m=tensor([d["goal_m"] for d in descriptions]),
+            texture_seed=tensor([d["texture_seed"] for d in descriptions], torch.int64),
+        )
+
     def describe(self, i: int) -> dict[str, object]:
         """Env i as a JSON-able dict: room, valid boxes (center, half extents, yaw), start, goal."""
         valid = self.box_valid[i].cpu()

@@ -99,3 +99,17 @@ def test_dagger_options_without_a_teacher_are_refused_not_ignored(tmp_path):
     assert proc.returncode == 2 and proc.stderr.strip() == (
         "cmnav train policy: --squares-episode-fraction, --beta-start train a student by DAgger: give --teacher TEACHER_DIR"), proc.stderr
     assert not out.exists()
+
+
+def test_the_cmwae_schemes_are_trainings():
+    import argparse
+
+    from cmnav.cli import build_parser
+    from training.cmwae.train import CORRUPTION_SCHEMES
+
+    def sub(parser: argparse.ArgumentParser, name: str) -> argparse.ArgumentParser:
+        return next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[name]
+
+    cmwae = sub(sub(build_parser(), "train"), "cmwae")
+    scheme = next(a for a in cmwae._actions if "--scheme" in a.option_strings)
+    assert tuple(scheme.choices) == CORRUPTION_SCHEMES

@@ -29,7 +29,7 @@ from torch.utils.data import DataLoader
 from sim.degradation import EVALUATION_COVERAGES, EVALUATION_PATCH_SIDES_PX, corrupt_depth, evaluation_scheme, patch_masks
 from sim.plot import opencv_for_drawing
 
-from ..data.tartanair import DatasetError, GrayDepthDataset, GrayDepthStereoDataset
+from ..data.tartanair import DatasetError, GrayDepthDataset, GrayDepthStereoDataset, stereo_projector_on
 from ..fastpath import choose_fast_path
 from ..vendored import import_vendored
 from .loss import NEAR_SURFACE_M, near_surface_mask, pooled_nearest_error
@@ -188,8 +188,7 @@ def _stereo_rows(scorer: _Scorer, config: CmwaeEvalConfig, latent_var: float) ->
         dataset = GrayDepthStereoDataset(config.data_dir, config.split)
     except DatasetError:
         return []  # no stereo depth: Table I's rows only
-    projector = json.loads((Path(config.data_dir) / "manifest.json").read_text())["stereo"]["projector_on"]
-    on = [projector[s.trajectory.split("/")[0]][int(s.image_path.name.split("_")[0])] for s in dataset.samples]
+    on = stereo_projector_on(config.data_dir, dataset.samples)
     by_projector = {True: _Scores(), False: _Scores()}
     loader = DataLoader(dataset, batch_size=config.batch_size, num_workers=0)
     first = 0

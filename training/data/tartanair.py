@@ -18,6 +18,7 @@ gray conversion bit-exact.
 from __future__ import annotations
 
 import hashlib
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -72,10 +73,21 @@ STEREO_DEPTH_DIR = "depth_stereo"
 STEREO_DEPTH_SUFFIX = "_stereo_depth.npy"
 
 
+def _v1_frame(sample: Sample) -> str:
+    """A V1 sample's frame name ("000000")."""
+    return sample.image_path.name[: -len(V1.image_suffix)]
+
+
 def stereo_depth_path(sample: Sample) -> Path:
     """Where the stereo depth of a V1 sample lives (it may not exist)."""
-    frame = sample.image_path.name[: -len(V1.image_suffix)]
-    return sample.image_path.parent.parent / STEREO_DEPTH_DIR / f"{frame}{STEREO_DEPTH_SUFFIX}"
+    return sample.image_path.parent.parent / STEREO_DEPTH_DIR / f"{_v1_frame(sample)}{STEREO_DEPTH_SUFFIX}"
+
+
+def stereo_projector_on(root: str | Path, samples: list[Sample]) -> list[bool]:
+    """Whether the IR projector was on for each sample's stereo depth, as the manifest of a
+    `cmnav dataset --depth stereo` dataset records it per room (the trajectory's ENV) and frame."""
+    projector = json.loads((Path(root) / "manifest.json").read_text())["stereo"]["projector_on"]
+    return [projector[s.trajectory.split("/")[0]][int(_v1_frame(s))] for s in samples]
 
 
 def find_samples(root: str | Path) -> list[Sample]:

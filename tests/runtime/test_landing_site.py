@@ -354,12 +354,24 @@ def test_the_dry_run_lands_clear_of_the_wall_and_of_a_post_beside_its_way_back(g
 
 
 class NearestToTheWall(LandingVehicle):
-    """A landing vehicle that keeps the farthest +x it reached (the far wall is at x = 8 m) and its
-    fastest speed from ``from_x_m`` on."""
+    """A landing vehicle that keeps the farthest +x it reached (the far wall is at x = 8 m), its
+    fastest speed from ``from_x_m`` on, and the +x where the brake began there (the first command
+    not forward: the goal reached); the runtime flies it along +x."""
 
     def __init__(self, from_x_m: float):
         super().__init__()
         self.from_x_m, self.max_x_m, self.speed_there_m_s = from_x_m, -math.inf, 0.0
+        self.brake_from_x_m: float | None = None
+
+    async def set_velocity_body(self, cmd) -> None:
+        await super().set_velocity_body(cmd)
+        if self.brake_from_x_m is None and self.pos[0] >= self.from_x_m and self.cmd_flu[0] <= 0.0:
+            self.brake_from_x_m = float(self.pos[0])
+
+    @property
+    def overshoot_m(self) -> float:
+        """How far the vehicle went on along +x after the brake began (m)."""
+        return self.max_x_m - self.brake_from_x_m
 
     def state(self):
         self.max_x_m = max(self.max_x_m, float(self.pos[0]))
@@ -380,13 +392,16 @@ def test_the_approach_to_a_goal_near_the_wall_slows_so_that_the_brake_stops_shor
     result, _, _ = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, goal, 1.5, RenderingCamera(_room(), vehicle), land_in_offboard=True, **SITE))
     assert result.outcome == "success" and result.approach_cap["capped_steps"] > 0, result
     assert result.approach_cap["least_cap_m_s"] < 1.5, result.approach_cap
-    capped_gap_m, capped_speed_m_s = 8.0 - vehicle.max_x_m, vehicle.speed_there_m_s
+    capped_overshoot_m, capped_speed_m_s = vehicle.overshoot_m, vehicle.speed_there_m_s
     # The policy's command as it was (mission.approach_cap off): the brake carries the vehicle nearer the wall.
     vehicle = NearestToTheWall(goal[0] - 1.0)
     result, _, _ = asyncio.run(_fly_and_retreat(goal_seeker, vehicle, goal, 1.5, RenderingCamera(_room(), vehicle), land_in_offboard=True,
                                                 approach_cap=False, **SITE))  # fmt: skip
     assert result.outcome == "success" and result.approach_cap == {"capped_steps": 0, "least_cap_m_s": None}, result
-    # Seen here (a vehicle lagging 0.8 s behind its command): 0.82 m left to the wall, 1.74 m/s at
-    # most in the goal's 1 m, against 0.65 m and 1.98 m/s.
-    assert capped_gap_m > 8.0 - vehicle.max_x_m + 0.08 and capped_speed_m_s < vehicle.speed_there_m_s - 0.1, (
-        capped_gap_m, 8.0 - vehicle.max_x_m, capped_speed_m_s, vehicle.speed_there_m_s)
+    # Seen here (a vehicle lagging 0.8 s behind its command), beside a training run on both cores:
+    # 1.73-1.74 m/s at most in the goal's 1 m and 0.65-0.67 m on after the brake began, against
+    # 1.98 m/s and 0.78 m.  The gap left to the wall is not compared: where the brake begins moves by
+    # a control period's travel (0.13 m at 2 m/s), 6.51-6.61 m in those flights, and CI saw 0.75 m
+    # capped against 0.67 m.
+    assert capped_overshoot_m < vehicle.overshoot_m - 0.06 and capped_speed_m_s < vehicle.speed_there_m_s - 0.1, (
+        capped_overshoot_m, vehicle.overshoot_m, capped_speed_m_s, vehicle.speed_there_m_s)

@@ -16,6 +16,7 @@ SITL_DEPTH_MODES = ("none", "projector-off", "stereo", "stereo-projector-off")
 VEHICLE_CHOICES = ("ideal", "px4", "field")  # training.policy.field.VEHICLES, likewise
 SITL_ESTIMATES = ("exact", "px4")  # sim.sitl.estimate.ESTIMATES, likewise
 VELOCITY_BIAS_MODES = ("correct", "off")  # runtime.tracking.VELOCITY_BIAS_MODES, likewise
+APPROACH_CAP_MODES = ("on", "off")  # runtime.programs.sitl.APPROACH_CAP_MODES, likewise
 
 
 def _cmd_sitl(args: argparse.Namespace) -> int:
@@ -439,7 +440,7 @@ def build_parser() -> argparse.ArgumentParser:
                       "less its error against the rate of its own position, and every setpoint corrected by it, so the "
                       "vehicle flies the command; runtime/tracking.py) or off (the estimate as reported) "
                       "(default correct)")  # fmt: skip
-    sitl.add_argument("--approach-cap", default="on", choices=["on", "off"],
+    sitl.add_argument("--approach-cap", default="on", choices=APPROACH_CAP_MODES,
                       help="the runtime's mission.approach_cap: within 3 m of the goal the command is slowed so that the "
                       "brake after it stops 0.5 m short of the surfaces seen ahead (on), or flown as the policy gives "
                       "it (off) (default on)")  # fmt: skip

@@ -62,6 +62,7 @@ log = logging.getLogger("runtime.programs.sitl")
 T_IMPORT_NS = time.monotonic_ns()
 FIRST_FRAME_TIMEOUT_S = 10.0
 LOG_NAME = "flight.mcap"
+APPROACH_CAP_MODES = ("on", "off")  # --approach-cap: mission.approach_cap true or false
 
 
 def process_age_s() -> float:
@@ -93,7 +94,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--intra-op-threads", type=int, default=0, help="ONNX Runtime intra-op threads (0 = its default)")
     parser.add_argument("--velocity-bias", choices=VELOCITY_BIAS_MODES, default="correct",
                         help="vehicle.velocity_bias_correction: correct the autopilot's velocity error (default) or off")
-    parser.add_argument("--approach-cap", choices=("on", "off"), default="on",
+    parser.add_argument("--approach-cap", choices=APPROACH_CAP_MODES, default="on",
                         help="mission.approach_cap: slow the approach to the goal to what the brake stops in (default) or off")
     parser.add_argument("--inject", action="append", default=[], metavar="KIND@SECONDS",
                         help="fault injection for tests (repeatable): inference-overrun, nan-action or geofence, "

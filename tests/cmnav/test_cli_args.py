@@ -86,6 +86,13 @@ def test_the_velocity_bias_modes_are_the_runtimes():
     assert VELOCITY_BIAS_MODES == RUNTIME_MODES
 
 
+def test_the_approach_cap_modes_are_the_sitl_runtimes():
+    from cmnav.cli import APPROACH_CAP_MODES
+    from runtime.programs.sitl import APPROACH_CAP_MODES as RUNTIME_MODES
+
+    assert APPROACH_CAP_MODES == RUNTIME_MODES
+
+
 def test_the_vehicle_choices_are_trainings():
     from cmnav.cli import VEHICLE_CHOICES
     from training.policy.field import VEHICLES

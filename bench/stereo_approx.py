@@ -28,7 +28,7 @@ import torch
 from sim.camera import CameraModel
 from sim.sensor import decimate_depth
 from sim.sensor.approx import CUES, StereoApproxConfig, approx_stereo_depth, loss_cues
-from training.data.tartanair import assign_splits, find_samples, read_depth_m, read_gray_u8, stereo_depth_path
+from training.data.tartanair import assign_splits, find_samples, read_depth_m, read_gray_u8, stereo_depth_path, stereo_projector_on
 
 RANGE_BINS_M = ((0.53, 2.0), (2.0, 4.0), (4.0, 10.0))
 LAGS_PX = (2, 4, 8)
@@ -38,22 +38,20 @@ def load_views(dataset: Path, frames: int, seed: int = 0) -> dict[str, list[dict
     """Up to ``frames`` views (clean depth, gray, decimated stereo depth, projector state) drawn
     at random from the dataset, by split ("train", "test")."""
     manifest = json.loads((dataset / "manifest.json").read_text())
-    projector = manifest.get("stereo", {}).get("projector_on")
-    if not projector:
+    if not manifest.get("stereo", {}).get("projector_on"):
         raise SystemExit(f"{dataset} has no stereo depth: make one with `cmnav dataset --depth stereo --out {dataset}`")
     samples = find_samples(dataset)
     random.Random(seed).shuffle(samples)
     splits = assign_splits(sorted({s.trajectory for s in samples}), val_fraction=0.0, test_fraction=0.33)
     views: dict[str, list[dict]] = {"train": [], "test": []}
-    for sample in samples[:frames]:
+    chosen = samples[:frames]
+    for sample, projector_on in zip(chosen, stereo_projector_on(dataset, chosen)):
         clean = read_depth_m(sample.depth_path, sample.layout)
         stereo = np.load(stereo_depth_path(sample))
         factor = stereo.shape[1] // clean.shape[1]
         decimated = decimate_depth(torch.from_numpy(stereo)[None], factor)[0].numpy()
-        index = int(sample.image_path.name.split("_")[0])
-        env = sample.trajectory.split("/")[0]
         views[splits[sample.trajectory]].append({"depth": clean, "gray": read_gray_u8(sample.image_path),
-                                                 "stereo": decimated, "projector_on": bool(projector[env][index])})  # fmt: skip
+                                                 "stereo": decimated, "projector_on": bool(projector_on)})  # fmt: skip
     return views
 
 

@@ -371,6 +371,7 @@ class NearestToTheWall(LandingVehicle):
     @property
     def overshoot_m(self) -> float:
         """How far the vehicle went on along +x after the brake began (m)."""
+        assert self.brake_from_x_m is not None, f"every command past x = {self.from_x_m} m was forward: the brake never began"
         return self.max_x_m - self.brake_from_x_m
 
     def state(self):

@@ -13,7 +13,8 @@ estimate (:data:`DRIFT`: a position offset random walk of ~0.2 m stationary sigm
 attitude error, the drift a map is built through on PX4).  Per pose, over the flights: the share of
 the map's cells at the flight height (+-0.3 m) farther than :data:`PHANTOM_M` from every true
 surface at that height (the estimate's offset at the end taken out), the 90th percentile of the
-cells' distance to the truth, the cells per map, and ``add_frame``'s time."""
+cells' distance to the truth, the cells per map, and the time of ``add_frame`` and of the approach cap's query after it
+(``free_ahead_m`` as :func:`runtime.watchdog.cap_approach` asks it, every step near the goal)."""
 
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ import torch
 
 from runtime.camera.surfaces import SeenSurfaces
 from runtime.contract.frames import quat_from_euler
+from runtime.watchdog import APPROACH_HALF_WIDTH_M, APPROACH_LOOKAHEAD_M, LANDING_WAY_HEIGHT_MARGIN_M
 from sim.camera import CameraModel
 from sim.collision import box_signed_distance_m
 from sim.sitl.camera_feed import CameraFeed
@@ -76,11 +78,12 @@ def heading_yaw_rad(path_m: np.ndarray, t: int) -> float:
 
 def map_flight(world: WorldBatch, path_m: np.ndarray, depth: str, seed: int) -> dict:
     """Build the map along one flight with each pose of :data:`POSES`; per pose the phantom share,
-    the 90th percentile distance and the cells; and add_frame's times (ms)."""
+    the 90th percentile distance and the cells; and the times (ms) of add_frame and of the
+    approach cap's free_ahead_m after it (along the flight's heading)."""
     feed = CameraFeed(world, CameraModel(), lambda: None, lambda frame: None, 15.0, depth_mode=depth, seed=seed)
     rng = np.random.default_rng(seed)
     maps = {pose: SeenSurfaces() for pose in POSES}
-    offset_m, tilt_rad, add_ms = np.zeros(3), np.zeros(2), []
+    offset_m, tilt_rad, add_ms, ahead_ms = np.zeros(3), np.zeros(2), [], []
     for t in range(1, len(path_m)):
         yaw = heading_yaw_rad(path_m, t)
         quat = quat_from_euler(0.0, 0.0, yaw)
@@ -93,9 +96,14 @@ def map_flight(world: WorldBatch, path_m: np.ndarray, depth: str, seed: int) -> 
         for pose, (pos, q) in poses.items():
             t0 = time.perf_counter()
             maps[pose].add_frame(frame.depth_m, pos, q, 0.0)
-            add_ms.append(1e3 * (time.perf_counter() - t0))
+            t1 = time.perf_counter()
+            maps[pose].free_ahead_m(pos[:2], yaw, APPROACH_HALF_WIDTH_M, pos[2] + LANDING_WAY_HEIGHT_MARGIN_M,
+                                    pos[2] - LANDING_WAY_HEIGHT_MARGIN_M, APPROACH_LOOKAHEAD_M)  # fmt: skip
+            t2 = time.perf_counter()
+            add_ms.append(1e3 * (t1 - t0))
+            ahead_ms.append(1e3 * (t2 - t1))
     z_m = float(path_m[-1, 2])
-    result = {"add_frame_ms": add_ms}
+    result = {"add_frame_ms": add_ms, "free_ahead_ms": ahead_ms}
     for pose, seen in maps.items():
         shift = offset_m[:2] if pose == "drift" else np.zeros(2)
         cells = seen.cells_xy_m(z_m + BAND_M, z_m - BAND_M) - shift
@@ -116,14 +124,15 @@ def run(policy_dir: str, encoder_dir: str, levels: list[int], episodes: int, roo
     check_trained_on(card, policy_dir, encoder_dir)
     cmwae, _ = load_cmwae(encoder_dir, device)
     encoder = env_encoder(cmwae.encoder, "fp32", device, seed=0)
-    flights, add_ms = [], []
+    flights, times_ms = [], {"add_frame_ms": [], "free_ahead_ms": []}
     for level in levels:
         for k, (outcome, path, described) in enumerate(fly_episodes(policy, encoder, level, "clean", episodes, episodes, device,
                                                                     seed=ROOMS[rooms])):  # fmt: skip
             if outcome != SUCCESS:
                 continue
             one = map_flight(WorldBatch.from_descriptions([described]), path, depth, seed=1000 * level + k)
-            add_ms += one.pop("add_frame_ms")
+            for name, values in times_ms.items():
+                values += one.pop(name)
             flights.append({"level": level, "episode": k, **one})
     summary = {}
     for pose in POSES:
@@ -135,7 +144,7 @@ def run(policy_dir: str, encoder_dir: str, levels: list[int], episodes: int, roo
                          "cells_median": _stat(np.median, [f[pose]["cells"] for f in flights])}  # fmt: skip
     return {"policy": policy_dir, "encoder": encoder_dir, "rooms": rooms, "levels": levels, "episodes": episodes, "depth": depth,
             "flights": flights, "summary": summary,
-            "add_frame_ms": {"median": _stat(np.median, add_ms), "p99": _stat(lambda v: np.percentile(v, 99), add_ms)}}  # fmt: skip
+            **{name: {"median": _stat(np.median, ms), "p99": _stat(lambda v: np.percentile(v, 99), ms)} for name, ms in times_ms.items()}}  # fmt: skip
 
 
 def _stat(fn, values: list) -> float | None:
@@ -153,9 +162,10 @@ def report(result: dict) -> str:
             continue
         lines.append(f"| {pose} | {s['flights']} | {100 * s['phantom_share_median']:.1f} / {100 * s['phantom_share_mean']:.1f} / "
                      f"{100 * s['phantom_share_max']:.1f} % | {s['p90_distance_m_median']:.2f} | {s['cells_median']:.0f} |")  # fmt: skip
-    ms = result["add_frame_ms"]
-    if ms["median"] is not None:
-        lines.append(f"add_frame: {ms['median']:.2f} ms median, {ms['p99']:.2f} ms p99")
+    for name in ("add_frame", "free_ahead"):
+        ms = result[f"{name}_ms"]
+        if ms["median"] is not None:
+            lines.append(f"{name}: {ms['median']:.2f} ms median, {ms['p99']:.2f} ms p99")
     return "\n".join(lines)
 
 

@@ -33,7 +33,7 @@ def test_a_map_from_the_rendered_depth_with_the_exact_pose_shows_no_phantoms_and
     assert exact["cells"] > 50 and drift["cells"] > 50
     assert exact["phantom_share"] < 0.02 and exact["p90_distance_m"] < 0.15, exact
     assert drift["p90_distance_m"] > exact["p90_distance_m"], (exact, drift)
-    assert len(result["add_frame_ms"]) == 2 * (len(path) - 1)
+    assert len(result["add_frame_ms"]) == len(result["free_ahead_ms"]) == 2 * (len(path) - 1)
 
 
 @pytest.mark.timeout(300)
@@ -45,7 +45,7 @@ def test_the_bench_flies_a_policy_and_reports_per_pose():
     result = json.loads(proc.stdout)
     assert set(result["summary"]) == {"exact", "drift"} and result["summary"]["exact"]["flights"] == 1
     assert result["summary"]["exact"]["phantom_share_median"] < 0.05
-    assert result["flights"][0]["level"] == 0 and result["add_frame_ms"]["median"] > 0.0
+    assert result["flights"][0]["level"] == 0 and result["add_frame_ms"]["median"] > 0.0 and result["free_ahead_ms"]["median"] > 0.0
     wrong = subprocess.run([sys.executable, "-m", "bench.seen_surfaces", "--policy", "models/student-field", "--encoder",
                             "models/cmwae-depth", "--levels", "0", "--episodes", "1"], capture_output=True, text=True, timeout=280)  # fmt: skip
     assert wrong.returncode == 2 and wrong.stderr.startswith("bench.seen_surfaces: the policy models/student-field was trained on encoder")

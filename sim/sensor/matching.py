@@ -12,12 +12,14 @@ projector).  Every invalid pixel comes out of those tests on the images; nothing
 except depth beyond ``max_range_m``.
 
 OpenCV releases the GIL while it matches, so a batch is matched by a small thread pool (as
-many threads as torch uses).
+many threads as torch uses), each thread with its own matcher: a StereoSGBM object keeps its
+working buffer between calls, and two threads computing on one wrote into each other's (a
+segfault in cv2 an evaluation of the ``field`` condition met 15 s in).
 """
 
 from __future__ import annotations
 
-import functools
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -30,8 +32,18 @@ from runtime.contract.constants import DEPTH_INVALID_VALUE
 from .config import StereoConfig
 
 
-@functools.lru_cache(maxsize=8)
+_THREAD = threading.local()  # per thread: {config: its StereoSGBM}
+
+
 def _matcher(config: StereoConfig):
+    """The calling thread's StereoSGBM for ``config`` (made on its first call there)."""
+    matchers = _THREAD.__dict__.setdefault("matchers", {})
+    if config not in matchers:
+        matchers[config] = _new_matcher(config)
+    return matchers[config]
+
+
+def _new_matcher(config: StereoConfig):
     import cv2  # here: importing sim.sensor does not need OpenCV (the offline GPU machine has none)
 
     block = config.block_size_px

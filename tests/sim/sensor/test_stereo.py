@@ -205,3 +205,27 @@ def test_the_compiled_subpixel_fit_equals_the_box_filter_one(config, distance_m)
     assert np.isfinite(disparity).mean() > 0.2
     np.testing.assert_array_equal(refine_subpixel(left, right, disparity, config),
                                   _refine_subpixel_reference(left, right, disparity, config))  # fmt: skip
+
+
+def test_each_matching_thread_has_its_own_matcher_and_a_pool_matches_as_one_thread_does():
+    # One StereoSGBM computed on by two threads at once wrote into its own working buffer from
+    # both (a segfault in cv2 during a field evaluation).
+    import threading
+
+    from sim.sensor.matching import _matcher, match_depth
+
+    made = []
+    threads = [threading.Thread(target=lambda: made.append(_matcher(D455))) for _ in range(3)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert _matcher(D455) is _matcher(D455)
+    assert len({id(m) for m in [*made, _matcher(D455)]}) == 4
+    rng = np.random.default_rng(0)
+    texture = rng.integers(0, 255, (16, 120, 240), dtype=np.uint8)
+    left = torch.from_numpy(np.ascontiguousarray(texture[:, :, 20:232]))
+    right = torch.from_numpy(np.ascontiguousarray(texture[:, :, 12:224]))  # 8 px of disparity
+    serial = match_depth(left, right, D455, threads=1)
+    for _ in range(3):
+        assert torch.equal(match_depth(left, right, D455, threads=4), serial)

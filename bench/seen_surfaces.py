@@ -40,6 +40,7 @@ from sim.world import WorldBatch
 PHANTOM_M = 0.3  # a cell farther than this from every true surface shows what is not there
 BAND_M = 0.3  # the cells counted: within this of the flight height (the landing's way and the approach's band)
 POSES = ("exact", "drift")
+TIMED = ("add_frame_ms", "free_ahead_ms")  # the calls timed per frame, in the result's keys
 
 
 @dataclass(frozen=True)
@@ -103,7 +104,7 @@ def map_flight(world: WorldBatch, path_m: np.ndarray, depth: str, seed: int) -> 
             add_ms.append(1e3 * (t1 - t0))
             ahead_ms.append(1e3 * (t2 - t1))
     z_m = float(path_m[-1, 2])
-    result = {"add_frame_ms": add_ms, "free_ahead_ms": ahead_ms}
+    result = dict(zip(TIMED, (add_ms, ahead_ms)))
     for pose, seen in maps.items():
         shift = offset_m[:2] if pose == "drift" else np.zeros(2)
         cells = seen.cells_xy_m(z_m + BAND_M, z_m - BAND_M) - shift
@@ -124,7 +125,7 @@ def run(policy_dir: str, encoder_dir: str, levels: list[int], episodes: int, roo
     check_trained_on(card, policy_dir, encoder_dir)
     cmwae, _ = load_cmwae(encoder_dir, device)
     encoder = env_encoder(cmwae.encoder, "fp32", device, seed=0)
-    flights, times_ms = [], {"add_frame_ms": [], "free_ahead_ms": []}
+    flights, times_ms = [], {name: [] for name in TIMED}
     for level in levels:
         for k, (outcome, path, described) in enumerate(fly_episodes(policy, encoder, level, "clean", episodes, episodes, device,
                                                                     seed=ROOMS[rooms])):  # fmt: skip
@@ -162,10 +163,10 @@ def report(result: dict) -> str:
             continue
         lines.append(f"| {pose} | {s['flights']} | {100 * s['phantom_share_median']:.1f} / {100 * s['phantom_share_mean']:.1f} / "
                      f"{100 * s['phantom_share_max']:.1f} % | {s['p90_distance_m_median']:.2f} | {s['cells_median']:.0f} |")  # fmt: skip
-    for name in ("add_frame", "free_ahead"):
-        ms = result[f"{name}_ms"]
+    for name in TIMED:
+        ms = result[name]
         if ms["median"] is not None:
-            lines.append(f"{name}: {ms['median']:.2f} ms median, {ms['p99']:.2f} ms p99")
+            lines.append(f"{name.removesuffix('_ms')}: {ms['median']:.2f} ms median, {ms['p99']:.2f} ms p99")
     return "\n".join(lines)
 
 

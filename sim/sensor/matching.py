@@ -14,11 +14,13 @@ except depth beyond ``max_range_m``.
 OpenCV releases the GIL while it matches, so a batch is matched by a small thread pool (as
 many threads as torch uses), each thread with its own matcher: a StereoSGBM object keeps its
 working buffer between calls, and two threads computing on one wrote into each other's (a
-segfault in cv2 an evaluation of the ``field`` condition met 15 s in).
+segfault in cv2 an evaluation of the ``field`` condition met 15 s in).  The pool lives as long
+as the process, so its threads and their matchers (and buffers) carry over from batch to batch.
 """
 
 from __future__ import annotations
 
+import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -32,15 +34,29 @@ from runtime.contract.constants import DEPTH_INVALID_VALUE
 from .config import StereoConfig
 
 
-_THREAD = threading.local()  # per thread: {config: its StereoSGBM}
+_THREAD = threading.local()  # per thread: {config: its StereoSGBM}, the oldest dropped past the bound
+_MATCHERS_PER_THREAD = 8
+_POOLS: dict[tuple[int, int], ThreadPoolExecutor] = {}  # (process id, threads): a forked child makes its own
+_POOLS_LOCK = threading.Lock()
 
 
 def _matcher(config: StereoConfig):
     """The calling thread's StereoSGBM for ``config`` (made on its first call there)."""
     matchers = _THREAD.__dict__.setdefault("matchers", {})
     if config not in matchers:
+        if len(matchers) >= _MATCHERS_PER_THREAD:
+            del matchers[next(iter(matchers))]
         matchers[config] = _new_matcher(config)
     return matchers[config]
+
+
+def _pool(threads: int) -> ThreadPoolExecutor:
+    """The process's matching pool of ``threads`` threads (made on first use, kept)."""
+    with _POOLS_LOCK:
+        key = (os.getpid(), threads)
+        if key not in _POOLS:
+            _POOLS[key] = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="stereo-match")
+        return _POOLS[key]
 
 
 def _new_matcher(config: StereoConfig):
@@ -167,6 +183,5 @@ def match_depth(left_u8: Tensor, right_u8: Tensor, config: StereoConfig, threads
     if workers == 1:
         depths = [one(i) for i in range(left.shape[0])]
     else:
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            depths = list(pool.map(one, range(left.shape[0])))
+        depths = list(_pool(workers).map(one, range(left.shape[0])))
     return torch.from_numpy(np.stack(depths))

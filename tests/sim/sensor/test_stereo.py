@@ -222,10 +222,51 @@ def test_each_matching_thread_has_its_own_matcher_and_a_pool_matches_as_one_thre
         thread.join()
     assert _matcher(D455) is _matcher(D455)
     assert len({id(m) for m in [*made, _matcher(D455)]}) == 4
-    rng = np.random.default_rng(0)
-    texture = rng.integers(0, 255, (16, 120, 240), dtype=np.uint8)
-    left = torch.from_numpy(np.ascontiguousarray(texture[:, :, 20:232]))
-    right = torch.from_numpy(np.ascontiguousarray(texture[:, :, 12:224]))  # 8 px of disparity
+    left, right = random_texture_pairs()
     serial = match_depth(left, right, D455, threads=1)
     for _ in range(3):
         assert torch.equal(match_depth(left, right, D455, threads=4), serial)
+
+
+def random_texture_pairs(batch: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
+    """Left and right uint8 [batch, 120, 212] views of random texture 8 px of disparity apart."""
+    texture = np.random.default_rng(0).integers(0, 255, (batch, 120, 240), dtype=np.uint8)
+    left = torch.from_numpy(np.ascontiguousarray(texture[:, :, 20:232]))
+    right = torch.from_numpy(np.ascontiguousarray(texture[:, :, 12:224]))
+    return left, right
+
+
+def test_the_matching_threads_and_their_matchers_carry_over_from_batch_to_batch(monkeypatch):
+    from sim.sensor import matching
+
+    made = []
+    new_matcher = matching._new_matcher
+    monkeypatch.setattr(matching, "_new_matcher", lambda config: made.append(config) or new_matcher(config))
+    left, right = random_texture_pairs()
+    matching.match_depth(left, right, D455, threads=2)
+    after_first = len(made)
+    for _ in range(3):
+        matching.match_depth(left, right, D455, threads=2)
+    assert len(made) == after_first
+
+
+def _match_in_child(left: torch.Tensor, right: torch.Tensor) -> None:
+    from sim.sensor.matching import match_depth
+
+    match_depth(left, right, D455, threads=2)
+
+
+def test_a_forked_child_matches_with_a_pool_of_its_own():
+    # The parent's pool threads do not survive a fork: a child handed the parent's pool would wait forever.
+    import multiprocessing
+
+    from sim.sensor.matching import match_depth
+
+    left, right = random_texture_pairs(batch=4)
+    match_depth(left, right, D455, threads=2)
+    child = multiprocessing.get_context("fork").Process(target=_match_in_child, args=(left, right))
+    child.start()
+    child.join(timeout=60)
+    if child.exitcode is None:
+        child.kill()
+    assert child.exitcode == 0

@@ -270,3 +270,15 @@ def test_a_forked_child_matches_with_a_pool_of_its_own():
     if child.exitcode is None:
         child.kill()
     assert child.exitcode == 0
+
+
+def test_a_thread_keeps_at_most_eight_matchers_dropping_the_oldest():
+    from sim.sensor import matching
+
+    configs = [replace(D455, uniqueness_ratio_pct=D455.uniqueness_ratio_pct + k) for k in range(1, 10)]
+    first = matching._matcher(configs[0])
+    for config in configs[1:]:
+        matching._matcher(config)
+    kept = matching._THREAD.matchers
+    assert len(kept) == 8 and configs[0] not in kept and configs[-1] in kept
+    assert matching._matcher(configs[0]) is not first  # made anew after it was dropped

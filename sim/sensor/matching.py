@@ -174,14 +174,14 @@ def match_depth(left_u8: Tensor, right_u8: Tensor, config: StereoConfig, threads
     """[B, H, W] float32 depth (m, left imager's frame, invalid = 0) from IR pairs [B, H, W] uint8."""
     left = left_u8.cpu().numpy()
     right = right_u8.cpu().numpy()
-    workers = max(1, min(threads or torch.get_num_threads(), left.shape[0]))
+    threads = max(1, threads or torch.get_num_threads())
 
     def one(i: int) -> np.ndarray:
         disparity = refine_subpixel(left[i], right[i], disparity_px(left[i], right[i], config), config)
         return depth_from_disparity(disparity, config)
 
-    if workers == 1:
+    if min(threads, left.shape[0]) == 1:
         depths = [one(i) for i in range(left.shape[0])]
     else:
-        depths = list(_pool(workers).map(one, range(left.shape[0])))
+        depths = list(_pool(threads).map(one, range(left.shape[0])))  # one pool per thread count, whatever the batch
     return torch.from_numpy(np.stack(depths))

@@ -205,7 +205,8 @@ def _policy_train_config(args: argparse.Namespace, encoder_dir: str | None, corr
         **({} if corruption is None else {"corruption": corruption}),
         ppo=PpoConfig(**_given(args, "minibatches", "lr", rollout_steps="rollout")),
         curriculum=CurriculumConfig(**_given(args, "start_level", "max_level", window_episodes="curriculum_window")),
-        resume=args.resume, init_from=args.init_from, max_wall_s=None if args.minutes is None else args.minutes * 60.0,
+        resume=args.resume, keep_checkpoints=args.keep_checkpoints, init_from=args.init_from,
+        max_wall_s=None if args.minutes is None else args.minutes * 60.0,
         **_given(args, "device", "seed", "checkpoint_every", "precision", "vehicle", "end_at_goal", num_envs="envs",
                  env_steps="steps"),
     )  # fmt: skip
@@ -233,7 +234,7 @@ def _train_student(args: argparse.Namespace) -> int:
 
     config = DaggerConfig(
         teacher_dir=args.teacher, encoder_dir=args.encoder, out_dir=args.out,
-        policy=POLICY_SIZES[args.size], resume=args.resume, init_from=args.init_from,
+        policy=POLICY_SIZES[args.size], resume=args.resume, keep_checkpoints=args.keep_checkpoints, init_from=args.init_from,
         max_wall_s=None if args.minutes is None else args.minutes * 60.0,
         **_given(args, "device", "seed", "corruption", "minibatches", "min_level", "max_level", "checkpoint_every", "precision",
                  "lr", "beta_start", "beta_decay_env_steps", "projector_off_episode_fraction", "squares_episode_fraction", "near_weight", "near_m",
@@ -653,6 +654,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="episodes per curriculum decision")  # fmt: skip
         _config_option(command, "--checkpoint-every", "training.policy.train:PolicyTrainConfig.checkpoint_every", *[f"{c}.checkpoint_every" for c in dagger],
                        type=int, help="iterations between checkpoints")  # fmt: skip
+        command.add_argument("--keep-checkpoints", action="store_true",
+                             help="also keep every checkpoint's weights in OUT/checkpoints/step-N (a policy directory each): "
+                             "the one an evaluation chose is never overwritten")  # fmt: skip
         command.add_argument("--resume", action="store_true", help="continue from the train state in --out")
 
     policy = train_sub.add_parser(

@@ -19,6 +19,7 @@ from torch import nn
 
 MAX_SHARD_BYTES = 15 * 1024 * 1024
 MODEL_CARD = "model.json"
+KEPT_CHECKPOINTS = "checkpoints"  # under a run's out dir: one checkpoint directory per step kept
 TRAIN_STATE = "train_state.pt"
 
 
@@ -80,6 +81,20 @@ def load_weights(ckpt_dir: str | Path, model: nn.Module) -> dict[str, Any]:
     state = {k: v.to(reference[k].dtype) if k in reference else v for k, v in state.items()}
     model.load_state_dict(state)
     return card
+
+
+def keep_checkpoint(out_dir: str | Path) -> Path:
+    """Copy the card and weight shards :func:`save_weights` last wrote in ``out_dir`` to
+    ``out_dir/checkpoints/step-NNNNNNNNNN`` (its step): a checkpoint directory of its own, without
+    the train state, that later saves do not overwrite, so the weights an evaluation chose stay."""
+    import shutil
+
+    card = read_card(out_dir)
+    kept = Path(out_dir) / KEPT_CHECKPOINTS / f"step-{card['step']:010d}"
+    kept.mkdir(parents=True, exist_ok=True)
+    for name in [*card["shards"], MODEL_CARD]:  # the card last: a directory with a card is whole
+        shutil.copy2(Path(out_dir) / name, kept / name)
+    return kept
 
 
 def save_train_state(out_dir: str | Path, state: dict[str, Any]) -> None:

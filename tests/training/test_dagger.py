@@ -67,8 +67,10 @@ def test_a_tiny_teacher_trains_on_the_low_resolution_env_and_is_evaluated_alone(
 
 def test_a_teacher_trains_on_px4s_response_and_resumes_only_on_it(tmp_path):
     out = tmp_path / "teacher-px4"
-    _cmnav(*TEACHER, "--out", str(out), "--steps", "256", "--vehicle", "px4", "--end-at-goal")
+    _cmnav(*TEACHER, "--out", str(out), "--steps", "256", "--vehicle", "px4", "--end-at-goal", "--keep-checkpoints")
     card = json.loads((out / "model.json").read_text())
+    assert [p.name for p in sorted((out / "checkpoints").iterdir())] == ["step-0000000256"]  # PPO keeps its checkpoints too
+    assert checkpoint_fingerprint(out / "checkpoints" / "step-0000000256") == checkpoint_fingerprint(out)
     assert card["meta"]["train"]["vehicle"] == "px4" and load_train_state(out)["vehicle"] == "px4"
     assert card["meta"]["train"]["end_at_goal"] is True and load_train_state(out)["end_at_goal"] is True
     for given, refusal in (((), "trained on the px4 vehicle, but --vehicle ideal"),
@@ -279,6 +281,25 @@ def test_the_distilled_student_exports_and_the_runtime_loads_it(trained, tmp_pat
         assert m["steps"] >= 1 and 0.0 <= m["near_share"] <= 1.0
         assert all(np.isfinite(m[k]) and m[k] >= 0.0 for k in ("action_mse", "recon_mse", "recon_mse_near", "recon_mse_teacher_view"))
         assert m["action_mse"] <= 4.0  # both actions lie in [-1, 1]
+
+
+def test_keep_checkpoints_keeps_each_checkpoint_s_weights_as_a_policy_of_its_own(trained, tmp_path):
+    out = tmp_path / "student"
+    args = ["train", "policy", "--teacher", str(trained / "teacher"), "--encoder", str(trained / "enc"), "--out", str(out),
+            "--size", "tiny", "--envs", "4", "--rollout", "8", "--minibatches", "2", "--precision", "fp32", "--checkpoint-every", "1"]  # fmt: skip
+    _cmnav(*args, "--steps", "64", "--keep-checkpoints")
+    _cmnav(*args, "--steps", "96", "--resume", "--keep-checkpoints")
+    kept = sorted((out / "checkpoints").iterdir())
+    assert [p.name for p in kept] == ["step-0000000032", "step-0000000064", "step-0000000096"]
+    weights = []
+    for path, step in zip(kept, (32, 64, 96)):
+        policy, card = load_policy(path)
+        assert card["step"] == step and card["meta"]["algorithm"] == "dagger" and not (path / "train_state.pt").exists()
+        weights.append(torch.cat([p.flatten() for p in policy.parameters()]))
+    assert not torch.equal(weights[0], weights[1]) and not torch.equal(weights[1], weights[2])
+    assert checkpoint_fingerprint(kept[-1]) == checkpoint_fingerprint(out)  # the last kept is the run's own
+    _cmnav(*args, "--steps", "128", "--resume")  # without the option, nothing more is kept
+    assert len(list((out / "checkpoints").iterdir())) == 3
 
 
 def test_a_student_trains_in_the_field_and_outside_it_each_with_its_teacher(trained, tmp_path):

@@ -32,7 +32,7 @@ from torch import Tensor
 
 from runtime.contract.constants import STATE_DIM
 
-from ..checkpoint import checkpoint_fingerprint, load_train_state, save_train_state, save_weights
+from ..checkpoint import checkpoint_fingerprint, keep_checkpoint, load_train_state, save_train_state, save_weights
 from ..cmwae.loss import NEAR_SURFACE_M, check_near_weighting, near_surface_mask
 from ..cmwae.train import load_cmwae
 from ..distributed import DistInfo, log_weights_digest, wall_budget_spent
@@ -101,6 +101,7 @@ class DaggerConfig:
     seed: int = 0
     precision: str = "auto"
     checkpoint_every: int = 20  # iterations
+    keep_checkpoints: bool = False  # every checkpoint's weights also kept in OUT/checkpoints/step-N (training.checkpoint.keep_checkpoint)
     resume: bool = False
     # Start the student from this policy (weights and normaliser; the latent statistics re-estimated
     # when it flew another encoder), e.g. a student distilled on the previous encoder.
@@ -329,6 +330,8 @@ def train_dagger(config: DaggerConfig) -> Path:
     def checkpoint() -> None:
         save_weights(out, student, CHECKPOINT_KIND, config.policy.to_json(), env_steps,
                      {**meta, "env_steps": env_steps, "iteration": iteration})  # fmt: skip
+        if config.keep_checkpoints:
+            keep_checkpoint(out)
         save_train_state(out, {"model": student.state_dict(), "optimizer": optimizer.state_dict(), "iteration": iteration,
                                "env_steps": env_steps, "env_rngs": [part[1].generator.get_state() for part in parts], "rng": generator.get_state(),
                                "encoder_fingerprint": encoder_fingerprint, "init_from": init_meta, "vehicle": config.vehicle,

@@ -14,7 +14,7 @@ import torch.distributed as dist
 
 from runtime.contract.constants import OBS_LATENT
 
-from ..checkpoint import checkpoint_fingerprint, load_train_state, save_train_state, save_weights
+from ..checkpoint import checkpoint_fingerprint, keep_checkpoint, load_train_state, save_train_state, save_weights
 from ..cmwae.train import load_cmwae
 from ..distributed import DistInfo, all_reduce_mean, log_weights_digest, run_distributed, wall_budget_spent
 from ..progress import Progress
@@ -40,6 +40,7 @@ class PolicyTrainConfig:
     ppo: PpoConfig = PpoConfig()
     curriculum: CurriculumConfig = CurriculumConfig()
     checkpoint_every: int = 20  # PPO iterations
+    keep_checkpoints: bool = False  # every checkpoint's weights also kept in OUT/checkpoints/step-N (training.checkpoint.keep_checkpoint)
     resume: bool = False
     init_from: str | None = None  # start from this policy checkpoint (fine-tuning, e.g. after retraining the encoder)
     max_wall_s: float | None = None  # stop (with a checkpoint) after this long
@@ -151,6 +152,8 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
             return
         save_weights(out, model, CHECKPOINT_KIND, policy_config.to_json(), env_steps,
                      {**meta, "env_steps": env_steps, "iteration": iteration, "curriculum_level": env.curriculum.level})  # fmt: skip
+        if config.keep_checkpoints:
+            keep_checkpoint(out)
         save_train_state(out, {
             "model": model.state_dict(), "optimizer": optimizer.state_dict(), "iteration": iteration,
             "env_steps": env_steps, "return_normalizer": normalizer.state_dict(),

@@ -5,12 +5,14 @@ Layout of a checkpoint directory:
   model.json            {"kind", "config", "step", "meta", "shards": [...]}
   weights-000.pt ...    fp16 (float tensors) state-dict shards, each <= MAX_SHARD_BYTES
   train_state.pt        optimizer, step, RNG states, fp32 weights (resume only; not committed)
+  checkpoints/step-N/   with --keep-checkpoints: model.json and shards of each checkpoint kept
 """
 
 from __future__ import annotations
 
 import io
 import json
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -87,8 +89,6 @@ def keep_checkpoint(out_dir: str | Path) -> Path:
     """Copy the card and weight shards :func:`save_weights` last wrote in ``out_dir`` to
     ``out_dir/checkpoints/step-NNNNNNNNNN`` (its step): a checkpoint directory of its own, without
     the train state, that later saves do not overwrite, so the weights an evaluation chose stay."""
-    import shutil
-
     card = read_card(out_dir)
     kept = Path(out_dir) / KEPT_CHECKPOINTS / f"step-{card['step']:010d}"
     kept.mkdir(parents=True, exist_ok=True)

@@ -4,7 +4,7 @@
 Layout of a checkpoint directory:
   model.json            {"kind", "config", "step", "meta", "shards": [...]}
   weights-000.pt ...    fp16 (float tensors) state-dict shards, each <= MAX_SHARD_BYTES
-  train_state.pt        optimizer, step, RNG states, fp32 weights (resume only; not committed)
+  train_state.pt        optimizer, step, RNG states, fp32 weights (resume only; a committed model keeps it so --resume continues it)
   checkpoints/step-N/   with --keep-checkpoints: model.json and shards of each checkpoint kept
 """
 

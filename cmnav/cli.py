@@ -187,7 +187,7 @@ def _cmd_train_cmwae(args: argparse.Namespace) -> int:
         init_from=args.init_from, anchor_from=args.anchor,
         **_given(args, "scheme", "modalities", "size", "batch_size", "lr", "mmd_weight", "seed", "device", "workers",
                  "checkpoint_every", "precision", "corrupted_loss_weight", "anchor_weight", "consistency_weight", "near_weight",
-                 "near_m", "pooled_weight", "val_images"),
+                 "near_m", "pooled_weight", "val_images", "squares_share"),
     )  # fmt: skip
     out = train_cmwae(config)
     print(f"checkpoint in {out}")
@@ -570,6 +570,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "simulated D455's depth a `cmnav dataset --depth stereo` dataset stores, clean depth the target; "
                         "stereo-mix: half the images that stereo depth, half clean, with S2's squares on a quarter and "
                         "the policy's patches on another quarter of them)")  # fmt: skip
+    _config_option(cmwae, "--squares-share", "training.cmwae.train:CmwaeTrainConfig.squares_share", type=float,
+                   help="--scheme stereo-mix: share of the images that get S2's 100 px squares rather than the policy's "
+                        "patches (S2 leaves half of them pristine)")  # fmt: skip
     cmwae.add_argument("--out", required=True, help="checkpoint directory (model.json + fp16 shards + train state)")
     _config_option(cmwae, "--modalities", "training.cmwae.train:CmwaeTrainConfig.modalities", type=_name_tuple,
                    choices=[("gray", "depth"), ("depth",)], metavar="{gray,depth | depth}",

@@ -95,11 +95,22 @@ def test_stereo_mix_scheme_mixes_stereo_and_clean_bases_under_squares_and_patche
     assert torch.equal(was, base_stereo | patched)  # degraded: every stereo image and every patched one, no other
     with pytest.raises(ValueError, match="--depth stereo"):
         _corrupt(depth, "stereo-mix", torch.Generator())
+    # --squares-share 1: every overlay is S2's (100 px squares on half the images, none of the small patches).
+    corrupted, _ = _corrupt(depth, "stereo-mix", torch.Generator().manual_seed(0), stereo, squares_share=1.0)
+    lost = 1.0 - (corrupted != 0.0).flatten(1).float().mean(dim=1)
+    assert 0.4 < float((lost > 0.0).float().mean()) < 0.6 and float(lost[lost > 0.0].min()) >= 0.15
+    corrupted, _ = _corrupt(depth, "stereo-mix", torch.Generator().manual_seed(0), stereo, squares_share=0.0)
+    lost = 1.0 - (corrupted != 0.0).flatten(1).float().mean(dim=1)
+    assert 0.4 < float((lost > 0.0).float().mean()) < 0.6 and float(lost[lost > 0.0].max()) <= 0.55  # 1-30 px to 50 %
 
     out = tmp_path / "cmwae"
     _cmnav("train", "cmwae", "--size", "tiny", "--batch-size", "4", "--workers", "0", "--data", str(stereo_dataset),
-           "--scheme", "stereo-mix", "--out", str(out), "--steps", "2")  # fmt: skip
-    assert read_card(out, "cmwae")["meta"]["val/mse_stereo"] > 0.0
+           "--scheme", "stereo-mix", "--squares-share", "0.8", "--out", str(out), "--steps", "2")  # fmt: skip
+    card = read_card(out, "cmwae")
+    assert card["meta"]["val/mse_stereo"] > 0.0 and card["meta"]["train"]["squares_share"] == 0.8
+    proc = _cmnav("train", "cmwae", "--data", str(stereo_dataset), "--scheme", "s2", "--squares-share", "0.8",
+                  "--out", str(tmp_path / "refused"), "--steps", "2", ok=False)  # fmt: skip
+    assert "squares_share applies to scheme 'stereo-mix'" in proc.stderr
 
     # Table I adds the stored stereo depth as the input, a row per projector state.
     result = json.loads(_cmnav("eval", "cmwae", "--checkpoint", str(out), "--data", str(stereo_dataset), "--split", "train",

@@ -33,12 +33,14 @@ CHECKPOINT_KIND = "cmwae"
 # (`cmnav dataset --depth stereo`), the target its clean rendered depth.  stereo-mix: what a
 # deployed encoder meets, mixed per image: the stored stereo depth on STEREO_MIX_STEREO_FRACTION of
 # the images (the clean depth on the rest), then, on top, one of STEREO_MIX_OVERLAYS drawn per image
-# with its own pristine share: S2's 100 px squares on a quarter of all, the policy's 1-30 px
-# patches on another quarter; the target is the clean depth.
+# with its own pristine share: S2's 100 px squares on the images CmwaeTrainConfig.squares_share
+# draws (a quarter of all at its default: S2 leaves half of its images pristine), the policy's 1-30 px
+# patches on the others' half; the target is the clean depth.
 STEREO_SCHEMES = ("stereo", "stereo-mix")
 CORRUPTION_SCHEMES = ("s1", "s2", "policy", "none", *STEREO_SCHEMES)
 STEREO_MIX_STEREO_FRACTION = 0.5
 STEREO_MIX_OVERLAYS = ("s2", "policy")
+STEREO_MIX_SQUARES_SHARE = 0.5
 
 
 @dataclass(frozen=True)
@@ -49,6 +51,9 @@ class CmwaeTrainConfig:
     # dataset --policy`); the validation curve stays on data_dir's val split, Table I's images.
     extra_data_dirs: tuple[str, ...] = ()
     scheme: str = "s2"
+    # stereo-mix: the share of the images whose overlay is S2's 100 px squares (the rest: the policy's
+    # patches); S2 leaves half of them pristine, so 0.5 puts squares on a quarter of all images.
+    squares_share: float = STEREO_MIX_SQUARES_SHARE
     modalities: tuple[str, ...] = MODALITIES
     size: str = "paper"
     steps: int | None = None
@@ -96,6 +101,10 @@ class CmwaeTrainConfig:
     def validate(self) -> None:
         if self.scheme not in CORRUPTION_SCHEMES:
             raise ValueError(f"scheme={self.scheme!r} must be one of {CORRUPTION_SCHEMES}")
+        if not 0.0 <= self.squares_share <= 1.0:
+            raise ValueError(f"squares_share={self.squares_share} must lie in [0, 1]")
+        if self.squares_share != STEREO_MIX_SQUARES_SHARE and self.scheme != "stereo-mix":
+            raise ValueError(f"squares_share applies to scheme 'stereo-mix', not {self.scheme!r}")
         if (self.steps is None) == (self.epochs is None):
             raise ValueError("give exactly one of steps or epochs")
         for key in ("batch_size", "checkpoint_every", "log_every"):
@@ -132,29 +141,31 @@ def learning_rate(config: CmwaeTrainConfig, step: int, total_steps: int) -> floa
     return config.lr_final + 0.5 * (config.lr - config.lr_final) * (1.0 + math.cos(math.pi * progress))
 
 
-def _corrupt(depth: torch.Tensor, scheme: str, generator: torch.Generator,
-             stereo: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+def _corrupt(depth: torch.Tensor, scheme: str, generator: torch.Generator, stereo: torch.Tensor | None = None,
+             squares_share: float = STEREO_MIX_SQUARES_SHARE) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
     """(corrupted depth, [B] bool: which images were degraded); ``stereo``: the stored stereo depth
-    of the batch (the stereo schemes)."""
+    of the batch (the stereo schemes); ``squares_share``: stereo-mix's share of S2's squares."""
     if scheme in STEREO_SCHEMES and stereo is None:
         raise ValueError(f"scheme {scheme!r} needs the stereo depth of each frame: a `cmnav dataset --depth stereo` dataset")
     if scheme == "stereo":
         return stereo, torch.ones(depth.shape[0], dtype=torch.bool)
     if scheme == "stereo-mix":
-        return _stereo_mix(depth, stereo, generator)
+        return _stereo_mix(depth, stereo, generator, squares_share)
     if scheme == "none":
         return depth, torch.zeros(depth.shape[0], dtype=torch.bool)
     corrupted, masks = corrupt_with_scheme(depth, SCHEMES[scheme], generator)
     return corrupted, masks.flatten(1).any(dim=1)
 
 
-def _stereo_mix(depth: torch.Tensor, stereo: torch.Tensor, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+def _stereo_mix(depth: torch.Tensor, stereo: torch.Tensor, generator: torch.Generator,
+                squares_share: float) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
     """Scheme "stereo-mix" (see STEREO_MIX_STEREO_FRACTION): each image's base is its stereo or its
-    clean depth; one of STEREO_MIX_OVERLAYS' patch schemes is drawn on top of it."""
+    clean depth; one of STEREO_MIX_OVERLAYS' patch schemes is drawn on top of it, S2's squares with
+    probability ``squares_share``."""
     batch = depth.shape[0]
     use_stereo = torch.rand(batch, generator=generator) < STEREO_MIX_STEREO_FRACTION
     corrupted = torch.where(use_stereo[:, None, None, None], stereo, depth)
-    overlay = torch.randint(len(STEREO_MIX_OVERLAYS), (batch,), generator=generator)
+    overlay = (torch.rand(batch, generator=generator) >= squares_share).long()  # index into STEREO_MIX_OVERLAYS
     masked = torch.zeros(batch, dtype=torch.bool)
     for k, name in enumerate(STEREO_MIX_OVERLAYS):
         patched, masks = corrupt_with_scheme(corrupted, SCHEMES[name], generator)
@@ -278,7 +289,7 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
         for gray, depth, *stereo in loader:
             if step >= total_steps:
                 break
-            corrupted, was_corrupted = _corrupt(depth, config.scheme, corruption_generator, *stereo)
+            corrupted, was_corrupted = _corrupt(depth, config.scheme, corruption_generator, *stereo, squares_share=config.squares_share)
             gray, depth, corrupted = path.image(gray.to(device)), depth.to(device), path.image(corrupted.to(device))
             with path.autocast(device):
                 z, recon = ddp_model(gray, corrupted)

@@ -32,14 +32,13 @@ CHECKPOINT_KIND = "cmwae"
 # stereo: the corrupted input is the simulated D455's depth the dataset stores for each frame
 # (`cmnav dataset --depth stereo`), the target its clean rendered depth.  stereo-mix: what a
 # deployed encoder meets, mixed per image: the stored stereo depth on STEREO_MIX_STEREO_FRACTION of
-# the images (the clean depth on the rest), then, on top, one of STEREO_MIX_OVERLAYS drawn per image
+# the images (the clean depth on the rest), then, on top, one of two patch schemes drawn per image
 # with its own pristine share: S2's 100 px squares on the images CmwaeTrainConfig.squares_share
 # draws (a quarter of all at its default: S2 leaves half of its images pristine), the policy's 1-30 px
 # patches on the others' half; the target is the clean depth.
 STEREO_SCHEMES = ("stereo", "stereo-mix")
 CORRUPTION_SCHEMES = ("s1", "s2", "policy", "none", *STEREO_SCHEMES)
 STEREO_MIX_STEREO_FRACTION = 0.5
-STEREO_MIX_OVERLAYS = ("s2", "policy")
 STEREO_MIX_SQUARES_SHARE = 0.5
 
 
@@ -160,16 +159,16 @@ def _corrupt(depth: torch.Tensor, scheme: str, generator: torch.Generator, stere
 def _stereo_mix(depth: torch.Tensor, stereo: torch.Tensor, generator: torch.Generator,
                 squares_share: float) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
     """Scheme "stereo-mix" (see STEREO_MIX_STEREO_FRACTION): each image's base is its stereo or its
-    clean depth; one of STEREO_MIX_OVERLAYS' patch schemes is drawn on top of it, S2's squares with
-    probability ``squares_share``."""
+    clean depth; on top of it S2's squares with probability ``squares_share``, else the policy's
+    patches."""
     batch = depth.shape[0]
     use_stereo = torch.rand(batch, generator=generator) < STEREO_MIX_STEREO_FRACTION
     corrupted = torch.where(use_stereo[:, None, None, None], stereo, depth)
-    overlay = (torch.rand(batch, generator=generator) >= squares_share).long()  # index into STEREO_MIX_OVERLAYS
+    squares = torch.rand(batch, generator=generator) < squares_share
     masked = torch.zeros(batch, dtype=torch.bool)
-    for k, name in enumerate(STEREO_MIX_OVERLAYS):
+    for name, chosen in (("s2", squares), ("policy", ~squares)):
         patched, masks = corrupt_with_scheme(corrupted, SCHEMES[name], generator)
-        hit = (overlay == k) & masks.flatten(1).any(dim=1)
+        hit = chosen & masks.flatten(1).any(dim=1)
         corrupted = torch.where(hit[:, None, None, None], patched, corrupted)
         masked |= hit
     return corrupted, use_stereo | masked

@@ -278,7 +278,7 @@ def _cmd_eval_policy(args: argparse.Namespace) -> int:
     from training.policy.evaluate import PolicyEvalConfig, evaluate_policy, format_table2
 
     config = PolicyEvalConfig(
-        policy_dir=args.policy, encoder_dir=args.encoder, out_dir=args.out,
+        policy_dir=args.policy, encoder_dir=args.encoder, out_dir=args.out, teacher_dir=args.teacher,
         **_given(args, "levels", "conditions", "episodes", "batch_envs", "device", "seed", "rooms", "precision"),
     )  # fmt: skip
     result = evaluate_policy(config)
@@ -794,6 +794,11 @@ def build_parser() -> argparse.ArgumentParser:
     eval_policy.add_argument("--rooms", choices=["validation", "test"],
                              help="room set: validation (seed 0) to choose models on, test (seed 1) for published tables")  # fmt: skip
     eval_policy.add_argument("--out", help="directory for table2.json/.md and plots (default POLICY/eval)")
+    eval_policy.add_argument("--teacher", metavar="TEACHER_DIR",
+                             help="a privileged teacher that labels every step of the policy's own flights: each cell "
+                                  "adds the imitation gap (the squared distance of the policy's action from the "
+                                  "teacher's, as DAgger regresses it) over all steps and in the last second before "
+                                  "crashes")  # fmt: skip
     eval_policy.add_argument("--json", action="store_true", help="print the result as JSON on the last line")
     add_precision(eval_policy)
     eval_policy.set_defaults(func=_cmd_eval_policy)

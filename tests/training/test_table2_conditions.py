@@ -1,12 +1,14 @@
 """Table II's sensor and out-of-distribution conditions (stereo, stereo-projector-off,
 patches-1-50px, patches-100px) in the batched env and in `evaluate_policy`, and its room sets
-(validation for choosing, test for reporting), on a tiny encoder and an untrained tiny policy."""
+(validation for choosing, test for reporting), and the imitation gap to a teacher (`--teacher`), on a tiny
+encoder and an untrained tiny policy."""
 
 from __future__ import annotations
 
 import json
 from dataclasses import asdict
 
+import numpy as np
 import pytest
 import torch
 
@@ -154,3 +156,53 @@ def test_every_condition_builds_a_valid_env_config():
     assert set(NEW_CONDITIONS) <= set(CONDITIONS)
     for overrides in CONDITIONS.values():
         assert set(overrides) <= {"corruption", "corruption_scheme"}
+
+
+def _constant_policy(config, action):
+    """A policy whose action is ``action`` whatever it observes."""
+    policy = ActorCritic(config)
+    torch.nn.init.zeros_(policy.action_head.weight)
+    with torch.no_grad():
+        policy.action_head.bias.copy_(torch.tensor(action))
+    return policy
+
+
+def test_the_imitation_gap_is_the_squared_distance_from_the_teachers_clamped_label(tmp_path):
+    from dataclasses import replace
+
+    from training.policy.env import NavEnvConfig
+    from training.policy.network import TEACHER
+
+    torch.manual_seed(0)
+    config = make_config("tiny")
+    save_weights(tmp_path / "enc", Cmwae(config), "cmwae", asdict(config), 0, {"train": {"scheme": "s2"}})
+    student = _constant_policy(POLICY_SIZES["tiny"], [0.5, 0.0, 0.0])
+    save_weights(tmp_path / "policy", student, "policy", POLICY_SIZES["tiny"].to_json(), 0,
+                 {"encoder_fingerprint": checkpoint_fingerprint(tmp_path / "enc")})  # fmt: skip
+    teacher_config = replace(POLICY_SIZES["tiny"], obs_dim=NavEnvConfig().privileged_obs_dim)
+    teacher = _constant_policy(teacher_config, [0.5, -0.25, 3.0])  # its yaw label clamps to 1
+    save_weights(tmp_path / "teacher", teacher, "policy", teacher_config.to_json(), 0, {"role": TEACHER})
+    eval_config = PolicyEvalConfig(str(tmp_path / "policy"), str(tmp_path / "enc"), levels=(1,), conditions=("patches-100px",),
+                                   episodes=2, batch_envs=2, out_dir=str(tmp_path / "eval"), plots_per_cell=0,
+                                   precision="fp32", episode_duration_s=1.0, teacher_dir=str(tmp_path / "teacher"))  # fmt: skip
+    result = evaluate_policy(eval_config)
+    cell = result["cells"][0]
+    assert cell["imitation_gap"] == pytest.approx(0.25**2 + 1.0**2, rel=1e-3)  # (0, 0.25, 1) off on every step
+    assert result["teacher_fingerprint"] == checkpoint_fingerprint(tmp_path / "teacher")
+    assert "imitation gap" in (tmp_path / "eval" / "table2.md").read_text()
+    without = evaluate_policy(replace(eval_config, teacher_dir=None, out_dir=str(tmp_path / "eval-plain")))
+    assert "imitation_gap" not in without["cells"][0] and "imitation gap" not in (tmp_path / "eval-plain" / "table2.md").read_text()
+    with pytest.raises(ValueError, match="not a privileged teacher"):  # a student is not a teacher
+        evaluate_policy(replace(eval_config, teacher_dir=str(tmp_path / "policy")))
+
+
+def test_the_imitation_gap_before_crashes_takes_each_crashs_last_second():
+    from training.policy.env import CRASH, SUCCESS
+    from training.policy.evaluate import imitation_gap
+
+    crash = np.r_[np.zeros(30), np.ones(15)]  # apart only in its last second
+    success = np.full(20, 0.5)
+    gap = imitation_gap([crash, success], [CRASH, SUCCESS])
+    assert gap["imitation_gap"] == pytest.approx((15 + 10) / 65)
+    assert gap["imitation_gap_before_crash"] == pytest.approx(1.0)
+    assert imitation_gap([success], [SUCCESS])["imitation_gap_before_crash"] is None

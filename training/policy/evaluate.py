@@ -16,6 +16,11 @@ config's speed caps with the episode lengthened to match).
 Rooms: ``validation`` (seed 0) for choosing models, ``test`` (seed 1) for the tables we publish;
 table2.json names which, with the fingerprints of the policy and the encoder measured and the
 encoder's precision path.
+
+With a privileged teacher (``teacher_dir``, `cmnav eval policy --teacher`), every step of the
+policy's own flights is also labelled with the teacher's action, and each cell gives the imitation
+gap: how far the policy is from what DAgger taught it, over all steps and in the last second
+before each crash (where it parts from a teacher that sees what it cannot).
 """
 
 from __future__ import annotations
@@ -29,7 +34,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from runtime.contract.constants import GOAL_REACHED_RADIUS_M, STATE_DIM
+from runtime.contract.constants import CAMERA_RATE_HZ, GOAL_REACHED_RADIUS_M, STATE_DIM
 from sim.degradation import evaluation_scheme
 from sim.plot import plot_top_view
 
@@ -40,6 +45,7 @@ from ..progress import Progress
 from ..stats import wilson_interval
 from .env import (CRASH, OUTCOMES, STEREO_MODES, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder,
                   parity_frames)  # fmt: skip
+from .dagger import load_teacher
 from .field import field_description, field_env_overrides, px4_vehicle_env_overrides
 from .network import TEACHER, check_trained_on, load_policy
 
@@ -76,6 +82,9 @@ class PolicyEvalConfig:
     rooms: str | None = None  # "validation" (seed 0) or "test" (seed 1)
     out_dir: str | None = None  # plots and table2.json (default POLICY/eval)
     plots_per_cell: int = 2
+    # A privileged teacher whose action labels every step of the policy's own flights (what DAgger
+    # regresses): each cell then gives the imitation gap (``imitation_gap``).
+    teacher_dir: str | None = None
     precision: str = "auto"  # the frozen encoder's fast path (training.fastpath)
     # Smoke runs only: end every episode after this many seconds (its condition's length
     # otherwise); table2.json records it, a published table leaves it None.
@@ -132,29 +141,49 @@ def table2_env(encoder, level: int, condition: str, num_envs: int, device, seed:
 
 @torch.no_grad()
 def fly_episodes(policy, encoder, level: int, condition: str, episodes: int, batch_envs: int, device, seed: int,
-                 episode_duration_s: float | None = None):  # fmt: skip
+                 episode_duration_s: float | None = None, teacher=None):  # fmt: skip
     """Fly ``episodes`` episodes at ``level`` under ``condition``; yields per episode
-    (outcome code, trajectory [T, 3], world description)."""
+    (outcome code, trajectory [T, 3], world description, gap).  With a ``teacher`` (its privileged
+    observation: the true state and clean depth), gap [T] is the squared distance of the policy's
+    action from the teacher's label at every step flown (what DAgger regresses); None without."""
     done_count = 0
     while done_count < episodes:
         n = min(batch_envs, episodes - done_count)
-        env = table2_env(encoder, level, condition, n, device, seed, first_episode=done_count, episode_duration_s=episode_duration_s)
+        env = table2_env(encoder, level, condition, n, device, seed, first_episode=done_count,
+                         teacher_obs=teacher is not None, episode_duration_s=episode_duration_s)  # fmt: skip
         obs = env.reset()
+        teacher_obs = None if teacher is None else env.teacher_observation()
+        teacher_hidden = None if teacher is None else teacher.initial_hidden(n, device)
         worlds = [env.world.describe(i) for i in range(n)]
         hidden = policy.initial_hidden(n, device)
         outcome = torch.zeros(n, dtype=torch.long)
         trajectory = [env.trajectory_point()]
+        gaps = []
         while bool(env.active.any()):
             mean, _, hidden = policy.step(obs, hidden)
+            if teacher is not None:
+                label, _, teacher_hidden = teacher.step(teacher_obs, teacher_hidden)
+                gaps.append(((mean - label.clamp(-1.0, 1.0)) ** 2).sum(-1).cpu())
             result = env.step(mean)
             outcome[result.done.cpu()] = result.outcome[result.done].cpu()
             trajectory.append(env.trajectory_point())
-            obs = result.obs
+            obs, teacher_obs = result.obs, result.teacher_obs
         path = torch.stack(trajectory, dim=1).numpy()  # [n, T, 3]; frozen after the end
+        gap = torch.stack(gaps, dim=1).numpy() if gaps else None  # [n, T]
         for i in range(n):
             steps = int(env.step_count[i])
-            yield int(outcome[i]), path[i, : steps + 1], worlds[i]
+            yield int(outcome[i]), path[i, : steps + 1], worlds[i], None if gap is None else gap[i, :steps]
         done_count += n
+
+
+def imitation_gap(gaps: list[np.ndarray], outcomes: list[int]) -> dict:
+    """A cell's imitation gap from its episodes' per-step gaps (:func:`fly_episodes`): the mean
+    over every step flown, and over the last second before each crash (where the policy and its
+    teacher part when the policy cannot tell what the teacher sees)."""
+    tail = round(CAMERA_RATE_HZ)
+    before_crash = [g[-tail:].mean() for g, code in zip(gaps, outcomes) if code == CRASH and len(g)]
+    return {"imitation_gap": float(np.concatenate(gaps).mean()),
+            "imitation_gap_before_crash": float(np.mean(before_crash)) if before_crash else None}  # fmt: skip
 
 
 @torch.no_grad()
@@ -180,6 +209,9 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
     policy, card = load_policy(config.policy_dir, device)
     conditions = config.conditions
     if card.get("meta", {}).get("role") == TEACHER:
+        if config.teacher_dir is not None:
+            raise ValueError(f"{config.policy_dir} is a privileged teacher itself: --teacher measures a student's "
+                             f"imitation gap to the teacher it learns from; leave it out")  # fmt: skip
         if config.encoder_dir is not None:
             raise ValueError(f"{config.policy_dir} is a privileged teacher (state + clean low-resolution depth, no "
                              f"encoder): evaluate it without --encoder")  # fmt: skip
@@ -195,6 +227,10 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
         cmwae, _ = load_cmwae(config.encoder_dir, device)
         encoder = env_encoder(cmwae.encoder, config.precision, device, seed=config.seed)
         action_parity = check_policy_parity(policy, cmwae.encoder, encoder, device, config.seed)
+    teacher = None if config.teacher_dir is None else load_teacher(config.teacher_dir, device)[0]
+    if teacher is not None and teacher.config.obs_dim != NavEnvConfig().privileged_obs_dim:
+        raise ValueError(f"--teacher {config.teacher_dir} observes {teacher.config.obs_dim} values, Table II's env gives "
+                         f"{NavEnvConfig().privileged_obs_dim}: give a teacher trained on the default privileged depth")  # fmt: skip
     out = Path(config.out_dir or Path(config.policy_dir) / "eval")
     out.mkdir(parents=True, exist_ok=True)
     cells: list[dict] = []
@@ -204,6 +240,7 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
         "policy": str(config.policy_dir), "role": card.get("meta", {}).get("role", "policy"),
         "policy_fingerprint": checkpoint_fingerprint(config.policy_dir),
         "encoder": config.encoder_dir, "encoder_fingerprint": fingerprint,
+        "teacher": config.teacher_dir, "teacher_fingerprint": None if teacher is None else checkpoint_fingerprint(config.teacher_dir),
         "rooms": config.room_set, "room_seed": config.room_seed,
         "fast_path": {"encoder": getattr(getattr(encoder, "path", None), "name", "fp32"), "bf16_action_error": action_parity,
                       "precision_requested": config.precision},
@@ -218,11 +255,15 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
         for level in config.levels:
             counts = {SUCCESS: 0, TIMEOUT: 0, CRASH: 0}
             reached = 0
-            for k, (code, path, world) in enumerate(
+            gaps, codes = [], []
+            for k, (code, path, world, gap) in enumerate(
                 fly_episodes(policy, encoder, level, condition, config.episodes, config.batch_envs, device, config.room_seed,
-                             config.episode_duration_s)
+                             config.episode_duration_s, teacher)
             ):
                 counts[code] += 1
+                if gap is not None:
+                    gaps.append(gap)
+                    codes.append(code)
                 reached += reached_goal(path, world["goal_m"])
                 if k < config.plots_per_cell:
                     plot_top_view(out / f"{condition}_level{level:02d}_ep{k}_{OUTCOMES[code]}.png", world["room_size_m"],
@@ -236,7 +277,7 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
                 "success_pct": 100.0 * counts[SUCCESS] / total, "timeout_pct": 100.0 * counts[TIMEOUT] / total,
                 "crash_pct": 100.0 * counts[CRASH] / total, "success_ci95_pct": [100.0 * low, 100.0 * high],
                 "reached_pct": 100.0 * reached / total,
-            })  # fmt: skip
+            } | (imitation_gap(gaps, codes) if teacher is not None else {}))  # fmt: skip
             log.info("cell %d of %d: %s", len(cells), n_cells, format_table2({"cells": cells[-1:]}).splitlines()[-1])
             result["complete"] = len(cells) == n_cells
             _write_tables(out, result)
@@ -262,13 +303,20 @@ def reached_goal(path_m: np.ndarray, goal_m) -> bool:
 
 def format_table2(result: dict) -> str:
     """The paper's layout: condition, level, success / timeout / crash %, and the success rate's
-    Wilson 95 % interval; then the runtime's "reached" (:func:`reached_goal`)."""
-    lines = ["| condition | level | episodes | success % | 95 % interval | timeout % | crash % | reached % |",
-             "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    Wilson 95 % interval; then the runtime's "reached" (:func:`reached_goal`), and with a teacher
+    the imitation gap (:func:`imitation_gap`) over all steps and in the last second before crashes."""
+    with_gap = any("imitation_gap" in c for c in result["cells"])
+    gap_header = " imitation gap | gap, last 1 s before crashes |" if with_gap else ""
+    lines = ["| condition | level | episodes | success % | 95 % interval | timeout % | crash % | reached % |" + gap_header,
+             "|---|---|---|---|---|---|---|---|" + "---|---|" * with_gap]  # fmt: skip
     for c in result["cells"]:
         low, high = c["success_ci95_pct"]
         reached = f"{c['reached_pct']:.1f}" if "reached_pct" in c else "–"
+        gap = ""
+        if with_gap:
+            before_crash = c.get("imitation_gap_before_crash")
+            gap = f" {c['imitation_gap']:.4f} | {'–' if before_crash is None else format(before_crash, '.4f')} |"
         lines.append(f"| {c['condition']} | {c['level']} | {c['episodes']} | {c['success_pct']:.1f} | {low:.0f}–{high:.0f} | "
-                     f"{c['timeout_pct']:.1f} | {c['crash_pct']:.1f} | {reached} |")  # fmt: skip
+                     f"{c['timeout_pct']:.1f} | {c['crash_pct']:.1f} | {reached} |" + gap)  # fmt: skip
     return "\n".join(lines)
 

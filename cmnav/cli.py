@@ -778,8 +778,8 @@ def build_parser() -> argparse.ArgumentParser:
         "images, projector on / off), patches-1-50px and patches-100px (Table I's 1-50 px and S2's 100 px "
         "squares to 50 %, fixed for the episode), field (stereo depth and the sensor and vehicle as in the field) "
         "and px4 (clean depth, PX4 v1.16's identified response with its delays and estimates).  Each cell gives "
-        "success / timeout / crash % and the success "
-        "rate's Wilson 95 % interval.",
+        "success / timeout / crash % and the success rate's Wilson 95 % interval; with --teacher, also the "
+        "student's imitation gap to that teacher.",
     )
     eval_policy.add_argument("--policy", required=True, help="policy checkpoint directory (cmnav train policy)")
     eval_policy.add_argument("--encoder", help="the encoder checkpoint the policy was trained with (none for a teacher)")

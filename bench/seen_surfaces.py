@@ -127,7 +127,7 @@ def run(policy_dir: str, encoder_dir: str, levels: list[int], episodes: int, roo
     encoder = env_encoder(cmwae.encoder, "fp32", device, seed=0)
     flights, times_ms = [], {name: [] for name in TIMED}
     for level in levels:
-        for k, (outcome, path, described) in enumerate(fly_episodes(policy, encoder, level, "clean", episodes, episodes, device,
+        for k, (outcome, path, described, _) in enumerate(fly_episodes(policy, encoder, level, "clean", episodes, episodes, device,
                                                                     seed=ROOMS[rooms])):  # fmt: skip
             if outcome != SUCCESS:
                 continue

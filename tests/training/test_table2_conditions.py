@@ -194,6 +194,10 @@ def test_the_imitation_gap_is_the_squared_distance_from_the_teachers_clamped_lab
     assert "imitation_gap" not in without["cells"][0] and "imitation gap" not in (tmp_path / "eval-plain" / "table2.md").read_text()
     with pytest.raises(ValueError, match="not a privileged teacher"):  # a student is not a teacher
         evaluate_policy(replace(eval_config, teacher_dir=str(tmp_path / "policy")))
+    other_depth = replace(teacher_config, obs_dim=teacher_config.obs_dim + 1)  # trained on another privileged depth size
+    save_weights(tmp_path / "teacher-other", ActorCritic(other_depth), "policy", other_depth.to_json(), 0, {"role": TEACHER})
+    with pytest.raises(ValueError, match="observes .* values"):
+        evaluate_policy(replace(eval_config, teacher_dir=str(tmp_path / "teacher-other")))
 
 
 def test_the_imitation_gap_before_crashes_takes_each_crashs_last_second():

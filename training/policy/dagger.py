@@ -261,6 +261,13 @@ def load_teacher(teacher_dir: str | Path, device: torch.device) -> tuple[ActorCr
     return teacher, card
 
 
+def check_teacher_fits(teacher: ActorCritic, env_config: NavEnvConfig, teacher_dir: str | Path) -> None:
+    """Refuse a teacher whose observation is not ``env_config``'s privileged one (another depth size)."""
+    if teacher.config.obs_dim != env_config.privileged_obs_dim:
+        raise ValueError(f"the teacher {teacher_dir} observes {teacher.config.obs_dim} values, this env's privileged "
+                         f"observation has {env_config.privileged_obs_dim}: give a teacher trained on that privileged depth size")  # fmt: skip
+
+
 def train_dagger(config: DaggerConfig) -> Path:
     """Distil the teacher into the deployed student; returns the checkpoint directory."""
     config.validate()
@@ -276,9 +283,7 @@ def train_dagger(config: DaggerConfig) -> Path:
     for k, (in_field, n) in enumerate(config.env_parts()):
         env_config = config.env_config(in_field, n)
         part_teacher = teacher if in_field else outside_teacher  # the same one unless the envs are split
-        if part_teacher.config.obs_dim != env_config.privileged_obs_dim:
-            raise ValueError(f"the teacher observes {part_teacher.config.obs_dim} values, this env's privileged observation "
-                             f"has {env_config.privileged_obs_dim}: distil with the privileged depth size it was trained on")  # fmt: skip
+        check_teacher_fits(part_teacher, env_config, config.teacher_dir if in_field else config.outside_teacher_dir or config.teacher_dir)
         env = NavEnv(env_config, encoder, device, seed=config.seed * 1000 + 7 + k, teacher_obs=True)
         parts.append(("field" if in_field else "outside", env, part_teacher, {}))
     student = ActorCritic(config.policy).to(device)

@@ -45,7 +45,7 @@ from ..progress import Progress
 from ..stats import wilson_interval
 from .env import (CRASH, OUTCOMES, STEREO_MODES, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder,
                   parity_frames)  # fmt: skip
-from .dagger import load_teacher
+from .dagger import check_teacher_fits, load_teacher
 from .field import field_description, field_env_overrides, px4_vehicle_env_overrides
 from .network import TEACHER, check_trained_on, load_policy
 
@@ -228,9 +228,8 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
         encoder = env_encoder(cmwae.encoder, config.precision, device, seed=config.seed)
         action_parity = check_policy_parity(policy, cmwae.encoder, encoder, device, config.seed)
     teacher = None if config.teacher_dir is None else load_teacher(config.teacher_dir, device)[0]
-    if teacher is not None and teacher.config.obs_dim != NavEnvConfig().privileged_obs_dim:
-        raise ValueError(f"--teacher {config.teacher_dir} observes {teacher.config.obs_dim} values, Table II's env gives "
-                         f"{NavEnvConfig().privileged_obs_dim}: give a teacher trained on the default privileged depth")  # fmt: skip
+    if teacher is not None:
+        check_teacher_fits(teacher, NavEnvConfig(), config.teacher_dir)
     out = Path(config.out_dir or Path(config.policy_dir) / "eval")
     out.mkdir(parents=True, exist_ok=True)
     cells: list[dict] = []

@@ -26,7 +26,7 @@ from training.data.tartanair import GrayDepthDataset, find_samples
 from training.policy.dagger import DaggerConfig, Sequences, collect, distill, load_teacher, near_surface_states, teacher_hides_squares
 from training.policy.env import CurriculumConfig, NavEnv, NavEnvConfig
 from training.policy.network import ActorCritic, PolicyConfig, load_policy
-from training.policy.train import PolicyTrainConfig, widen_inputs
+from training.policy.train import PolicyTrainConfig
 
 pytestmark = pytest.mark.timeout(300)
 GAP_SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "student-gap.py"
@@ -180,11 +180,8 @@ def test_near_surface_states_are_those_whose_teacher_sees_a_surface_nearer_than_
     obs[1, STATE_DIM + 7] = 1.2 / c.DEPTH_MAX_M  # one pixel at 1.2 m
     obs[2, STATE_DIM + 7] = 1.6 / c.DEPTH_MAX_M
     obs[:, :STATE_DIM] = 0.01  # the state values are not depth
-    assert near_surface_states(obs, 1.5, pixels).tolist() == [False, True, False]
-    assert near_surface_states(obs, 2.0, pixels).tolist() == [False, True, True]
-    # A squares teacher's hidden shares after the depth are not depth.
-    shares = torch.cat([obs, torch.full((3, pixels), 0.05)], dim=1)
-    assert near_surface_states(shares, 1.5, pixels).tolist() == [False, True, False]
+    assert near_surface_states(obs, 1.5).tolist() == [False, True, False]
+    assert near_surface_states(obs, 2.0).tolist() == [False, True, True]
     with pytest.raises(ValueError, match="near_m=12.0 must lie in"):  # the encoder's check, shared
         DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", near_m=12.0).validate()
     with pytest.raises(ValueError, match="near_weight=-1.0 must lie in"):
@@ -198,7 +195,7 @@ def test_collect_weights_each_step_by_what_its_teacher_saw():
     student = ActorCritic(PolicyConfig(mlp_sizes=(16,), gru_size=8))
     seq, stats = collect(student, teacher, env, _carry(env, student, teacher), 24, 0.0, torch.Generator().manual_seed(0),
                          near_weight=4.0, near_m=2.5)  # fmt: skip
-    near = torch.stack([near_surface_states(o, 2.5, env.config.privileged_depth_dim) for o in teacher.seen])  # [T, N] at the labelled step
+    near = torch.stack([near_surface_states(o, 2.5) for o in teacher.seen])  # [T, N] at the labelled step
     assert 0 < int(near.sum()) < near.numel()  # both kinds of state occur
     torch.testing.assert_close(seq.weights, 1.0 + 4.0 * near.float())
     assert stats["near_share"] == pytest.approx(float(near.float().mean()))
@@ -415,55 +412,37 @@ def test_squares_episodes_keep_one_large_mask_for_their_whole_episode():
 
 def test_the_squares_hide_the_teachers_privileged_depth_where_they_cover_the_student_s():
     """squares_hide_privileged: a squares episode's mask leaves the render pixels it covers out of
-    the teacher's min-pool (a cell left with none reads far), and the hidden share of each cell
-    follows the depth; elsewhere the teacher sees what it saw without it, and episodes without
-    squares are untouched (their shares are 0)."""
+    the teacher's min-pool; a cell left with none reads invalid (0) as the student's masked pixels
+    do; elsewhere the teacher sees what it saw without it, and episodes without squares are untouched."""
     config = NavEnvConfig(num_envs=6, corruption="train", corrupted_env_fraction=0.0, squares_episode_fraction=0.5)
     hiding, seeing = (NavEnv(replace(config, squares_hide_privileged=hide), None, "cpu", seed=0) for hide in (True, False))
-    pixels = config.privileged_depth_dim
-    assert hiding.config.privileged_obs_dim == STATE_DIM + 2 * pixels and seeing.config.privileged_obs_dim == STATE_DIM + pixels
     hidden_obs, clean_obs = hiding.reset()[:, STATE_DIM:], seeing.reset()[:, STATE_DIM:]
-    hidden_depth, shares = hidden_obs[:, :pixels], hidden_obs[:, pixels:]
     assert torch.equal(hiding.squares_episode, seeing.squares_episode) and 0 < int(hiding.squares_episode.sum()) < 6
     width, height = config.privileged_depth_px
     cells = hiding.privileged_hidden.view(6, height, 2, width, 2)
-    torch.testing.assert_close(shares, cells.float().mean(dim=(2, 4)).flatten(1))
-    whole, some = shares == 1.0, shares > 0.0
+    whole, some = cells.all(dim=4).all(dim=2).flatten(1), cells.any(dim=4).any(dim=2).flatten(1)
     squares = hiding.squares_episode
-    assert not bool(some[~squares].any()) and torch.equal(hidden_depth[~squares], clean_obs[~squares])
+    assert not bool(hiding.privileged_hidden[~squares].any()) and torch.equal(hidden_obs[~squares], clean_obs[~squares])
     for env in squares.nonzero().squeeze(1).tolist():
         mask_share = float(hiding.episode_masks[env].float().mean())  # EPISODE_SQUARES: 20-50 % of the student's pixels
-        assert abs(float(shares[env].mean()) - mask_share) < 0.08
-        assert bool((hidden_depth[env][whole[env]] == 1.0).all()) and bool(whole[env].any())  # as far as the depth goes
-        assert torch.equal(hidden_depth[env][~some[env]], clean_obs[env][~some[env]])  # untouched cells: the same depth
+        assert abs(float(hiding.privileged_hidden[env].float().mean()) - mask_share) < 0.08
+        assert bool((hidden_obs[env][whole[env]] == c.DEPTH_INVALID_VALUE).all()) and bool(whole[env].any())
+        assert torch.equal(hidden_obs[env][~some[env]], clean_obs[env][~some[env]])  # untouched cells: the same depth
         partly = some[env] & ~whole[env]  # the nearest of the pixels left: never nearer than the clean cell
-        assert bool((hidden_depth[env][partly] >= clean_obs[env][partly]).all())
+        assert bool((hidden_obs[env][partly] >= clean_obs[env][partly]).all())
     # The same mask a step later (the episode's), and the ``episode`` mode hides every env's mask.
     hiding.step(torch.zeros(6, 3))
-    torch.testing.assert_close(hiding.teacher_observation()[:, STATE_DIM + pixels :], shares)
+    assert bool((hiding.teacher_observation()[:, STATE_DIM:][whole] == c.DEPTH_INVALID_VALUE).all())
     table = NavEnv(NavEnvConfig(num_envs=3, corruption="episode", squares_hide_privileged=True), None, "cpu", seed=4)
     table.reset()
     assert all(bool(table.privileged_hidden[i].any()) for i in range(3) if bool(table.episode_masks[i].float().mean() > 0.2))
 
 
-def test_a_teacher_widened_for_the_hidden_shares_acts_as_before_until_it_learns_them():
-    base = ActorCritic(PolicyConfig(obs_dim=STATE_DIM + 8, mlp_sizes=(16,), gru_size=4))
-    base.obs_norm.mean.uniform_(0.0, 1.0)
-    widened = ActorCritic(PolicyConfig(obs_dim=STATE_DIM + 16, mlp_sizes=(16,), gru_size=4))
-    widened.load_state_dict(widen_inputs(base.state_dict(), STATE_DIM + 16))
-    obs = torch.rand(5, STATE_DIM + 8)
-    with torch.no_grad():
-        expected, _, _ = base.step(obs, base.initial_hidden(5))
-        got, _, _ = widened.step(torch.cat([obs, torch.rand(5, 8)], dim=1), widened.initial_hidden(5))
-    torch.testing.assert_close(got, expected)
-
-
 def test_a_teacher_trained_under_the_squares_labels_its_students_squares_episodes_without_them(trained, tmp_path):
-    out = tmp_path / "teacher-squares"  # widened from the teacher with clean depth
-    _cmnav(*TEACHER, "--out", str(out), "--steps", "256", "--squares-episode-fraction", "0.5", "--init-from", str(trained / "teacher"))
+    out = tmp_path / "teacher-squares"
+    _cmnav(*TEACHER, "--out", str(out), "--steps", "256", "--squares-episode-fraction", "0.5")
     card = json.loads((out / "model.json").read_text())
     assert card["meta"]["train"]["squares_episode_fraction"] == 0.5 and teacher_hides_squares(card)
-    assert card["config"]["obs_dim"] == STATE_DIM + 2 * 32 * 18 and card["meta"]["init_from"]["dir"] == str(trained / "teacher")
     assert not teacher_hides_squares(json.loads((trained / "teacher" / "model.json").read_text()))
     student = tmp_path / "student"
     args = ["train", "policy", "--teacher", str(trained / "teacher"), "--encoder", str(trained / "enc"), "--size", "tiny",
@@ -485,10 +464,9 @@ def test_a_teacher_trained_under_the_squares_labels_its_students_squares_episode
 class ConstantTeacher(nn.Module):
     """A privileged teacher that always answers ``action``."""
 
-    def __init__(self, action, obs_dim):
+    def __init__(self, action):
         super().__init__()
         self.action = torch.tensor(action)
-        self.config = PolicyConfig(obs_dim=obs_dim)
 
     def initial_hidden(self, batch, device="cpu"):
         return torch.zeros(batch, 2, device=device)
@@ -501,9 +479,7 @@ def test_the_squares_teacher_labels_the_squares_episodes_and_the_teacher_the_oth
     encoder = Cmwae(make_config("tiny")).encoder
     config = NavEnvConfig(num_envs=6, corruption="train", squares_episode_fraction=0.5, squares_hide_privileged=True, kick_probability=0.0)
     env = NavEnv(config, encoder, "cpu", seed=0, teacher_obs=True)
-    # The teacher with clean depth reads the depth alone, the squares teacher the hidden shares too.
-    teacher = ConstantTeacher([0.1, 0.0, 0.0], STATE_DIM + config.privileged_depth_dim)
-    squares_teacher = ConstantTeacher([0.5, 0.0, 0.0], config.privileged_obs_dim)
+    teacher, squares_teacher = ConstantTeacher([0.1, 0.0, 0.0]), ConstantTeacher([0.5, 0.0, 0.0])
     student = ActorCritic(PolicyConfig(mlp_sizes=(16,), gru_size=8))
     carry = _carry(env, student, teacher) | {"h_squares": squares_teacher.initial_hidden(6)}
     squares = env.squares_episode.clone()

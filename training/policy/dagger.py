@@ -185,11 +185,10 @@ class Sequences:
     weights: Tensor  # [T, N] each step's weight in the imitation loss
 
 
-def near_surface_states(teacher_obs: Tensor, near_m: float, depth_dim: int) -> Tensor:
-    """[N] bool: the teacher's clean depth (the ``depth_dim`` values after the 15 state values of
-    [N, P], normalised by DEPTH_MAX_M) holds a surface nearer than ``near_m`` metres
-    (`near_surface_mask`, the encoder's rule)."""
-    return near_surface_mask(teacher_obs[:, STATE_DIM : STATE_DIM + depth_dim], near_m).any(dim=-1)
+def near_surface_states(teacher_obs: Tensor, near_m: float) -> Tensor:
+    """[N] bool: the teacher's clean depth (of [N, 15 + W*H], normalised by DEPTH_MAX_M) holds a
+    surface nearer than ``near_m`` metres (`near_surface_mask`, the encoder's rule)."""
+    return near_surface_mask(teacher_obs[:, STATE_DIM:], near_m).any(dim=-1)
 
 
 @torch.no_grad()
@@ -217,19 +216,17 @@ def collect(student: ActorCritic, teacher: ActorCritic, env: NavEnv, carry: dict
         h_student = torch.where(starts.unsqueeze(-1), torch.zeros_like(h_student), h_student)
         h_teacher = torch.where(starts.unsqueeze(-1), torch.zeros_like(h_teacher), h_teacher)
         student_action, _, h_student = student.step(obs, h_student)
-        # Each teacher reads the part of the privileged observation it was trained on (a teacher
-        # with clean depth: not the hidden shares a squares teacher reads after it).
-        teacher_action, _, h_teacher = teacher.step(teacher_obs[:, : teacher.config.obs_dim], h_teacher)
+        teacher_action, _, h_teacher = teacher.step(teacher_obs, h_teacher)
         if squares_teacher is not None:  # both carried along every env: each env's episodes may change kind
             h_squares = torch.where(starts.unsqueeze(-1), torch.zeros_like(h_squares), h_squares)
-            squares_action, _, h_squares = squares_teacher.step(teacher_obs[:, : squares_teacher.config.obs_dim], h_squares)
+            squares_action, _, h_squares = squares_teacher.step(teacher_obs, h_squares)
             teacher_action = torch.where(env.squares_episode.to(obs.device).unsqueeze(-1), squares_action, teacher_action)
         label = teacher_action.clamp(-1.0, 1.0)
         by_teacher = torch.rand(n, generator=generator).to(obs.device) < beta
         teacher_steps += int(by_teacher.sum())
         result = env.step(torch.where(by_teacher.unsqueeze(-1), label, student_action))
         buf_obs[t], buf_starts[t], buf_labels[t] = obs, starts, label
-        buf_near[t] = near_surface_states(teacher_obs, near_m, env.config.privileged_depth_dim)
+        buf_near[t] = near_surface_states(teacher_obs, near_m)
         for code in outcomes:
             outcomes[code] += int((result.outcome[result.done] == code).sum())
         obs, teacher_obs, starts = result.obs, result.teacher_obs, result.done
@@ -289,10 +286,8 @@ def teacher_hides_squares(card: dict) -> bool:
 
 
 def check_teacher_fits(teacher: ActorCritic, env_config: NavEnvConfig, teacher_dir: str | Path) -> None:
-    """Refuse a teacher whose observation is not ``env_config``'s privileged one (another depth
-    size), or its clean depth alone (a teacher that does not read the hidden shares)."""
-    clean = STATE_DIM + env_config.privileged_depth_dim
-    if teacher.config.obs_dim not in (env_config.privileged_obs_dim, clean):
+    """Refuse a teacher whose observation is not ``env_config``'s privileged one (another depth size)."""
+    if teacher.config.obs_dim != env_config.privileged_obs_dim:
         raise ValueError(f"the teacher {teacher_dir} observes {teacher.config.obs_dim} values, this env's privileged "
                          f"observation has {env_config.privileged_obs_dim}: give a teacher trained on that privileged depth size")  # fmt: skip
 

@@ -29,6 +29,7 @@ from torch.nn import functional as F
 
 from runtime.contract.constants import (
     CONTROL_PERIOD_S,
+    DEPTH_INVALID_VALUE,
     DEPTH_MAX_M,
     EPISODE_DURATION_S,
     GOAL_REACHED_RADIUS_M,
@@ -156,13 +157,10 @@ class NavEnvConfig:
     privileged_pool: int = 2
     # Hide from the privileged depth what the student's depth loses for a whole episode (the
     # squares episodes, the ``episode`` mode's masks): the render pixels the episode's mask covers
-    # for at least half their area are left out of the min-pool (a cell left with none reads as
-    # far as the depth goes), and a second channel of W*H values after the depth gives the share
-    # of each cell hidden.  A teacher trained so flies on what its student can know there, and its
-    # labels become ones the student can follow (a teacher that sees through the squares flies as
-    # near to the surfaces they hide as to visible ones).  The channel, not an invalid depth of 0,
-    # tells it what is hidden: a teacher fine-tuned from one with clean depth reads 0 as a surface
-    # at the lens and would brake for every square.
+    # for at least half their area are left out of the min-pool, and a cell left with none reads
+    # DEPTH_INVALID_VALUE as the student's masked pixels do.  A teacher trained so flies on what
+    # its student can know there, and its labels become ones the student can follow (a teacher
+    # that sees through the squares flies as near to the surfaces they hide as to visible ones).
     squares_hide_privileged: bool = False
     world: WorldConfig = WorldConfig()
     # The vehicle's response; its command_delay_*_s (the autopilot's, e.g. PX4_SIH_V1_16's) hold
@@ -197,14 +195,9 @@ class NavEnvConfig:
         return width // self.privileged_pool, height // self.privileged_pool
 
     @property
-    def privileged_depth_dim(self) -> int:
-        """The privileged depth's cells (W*H); with squares_hide_privileged the hidden shares follow."""
-        width, height = self.privileged_depth_px
-        return width * height
-
-    @property
     def privileged_obs_dim(self) -> int:
-        return STATE_DIM + self.privileged_depth_dim * (2 if self.squares_hide_privileged else 1)
+        width, height = self.privileged_depth_px
+        return STATE_DIM + width * height
 
     def validate(self) -> None:
         if self.num_envs < 1:
@@ -602,23 +595,21 @@ class NavEnv:
 
     def privileged_depth(self) -> Tensor:
         """[N, W*H] the teacher's clean depth at the current camera poses (see NavEnvConfig),
-        normalised by DEPTH_MAX_M to [0, 1] (nothing is invalid: the room is closed); with
-        squares_hide_privileged [N, 2*W*H]: less the hidden pixels, then each cell's hidden share."""
+        normalised by DEPTH_MAX_M to [0, 1] (nothing is invalid: the room is closed)."""
         t0 = time.perf_counter()
         cam_pos, cam_quat = camera_pose(self.state.pos_enu_m, self.state.quat_enu_flu, self.privileged_camera, self.jitter)
         depth_m = render(self.world, cam_pos, cam_quat, self.privileged_camera).depth_m
         depth = torch.nan_to_num(depth_m, nan=DEPTH_MAX_M, posinf=DEPTH_MAX_M)
         depth = torch.where(depth <= 0.0, torch.full_like(depth, DEPTH_MAX_M), depth)
         pool = self.config.privileged_pool
-        if self.config.squares_hide_privileged:
+        hidden = None
+        if self.config.squares_hide_privileged and bool(self.privileged_hidden.any()):
             hidden = self.privileged_hidden.to(self.device)
-            depth = depth.masked_fill(hidden, DEPTH_MAX_M)
+            depth = depth.masked_fill(hidden, math.inf)
         nearest = -F.max_pool2d(-depth.unsqueeze(1), pool).flatten(1)
         self._timed("privileged", t0)
         normalised = (nearest * (1.0 / DEPTH_MAX_M)).clamp(0.0, 1.0)
-        if not self.config.squares_hide_privileged:
-            return normalised
-        return torch.cat([normalised, F.avg_pool2d(hidden.unsqueeze(1).float(), pool).flatten(1)], dim=-1)
+        return normalised if hidden is None else normalised.masked_fill(torch.isinf(nearest), DEPTH_INVALID_VALUE)
 
     def _state_observation(self, estimated: bool = False) -> Tensor:
         """[N, 15] the contract's state values of the true state, or (``estimated``, with a state
@@ -629,7 +620,7 @@ class NavEnv:
         )
 
     def teacher_observation(self) -> Tensor:
-        """[N, privileged_obs_dim] the privileged observation of the current states."""
+        """[N, 15 + W*H] the privileged observation of the current states."""
         return torch.cat([self._state_observation(), self.privileged_depth()], dim=-1)
 
     def live_envs(self) -> Tensor:

@@ -165,7 +165,7 @@ def fly_episodes(policy, encoder, level: int, condition: str, episodes: int, bat
         while bool(env.active.any()):
             mean, _, hidden = policy.step(obs, hidden)
             if teacher is not None:
-                label, _, teacher_hidden = teacher.step(teacher_obs[:, : teacher.config.obs_dim], teacher_hidden)
+                label, _, teacher_hidden = teacher.step(teacher_obs, teacher_hidden)
                 gaps.append(((mean - label.clamp(-1.0, 1.0)) ** 2).sum(-1).cpu())
             result = env.step(mean)
             outcome[result.done.cpu()] = result.outcome[result.done].cpu()
@@ -235,7 +235,7 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
         action_parity = check_policy_parity(policy, cmwae.encoder, encoder, device, config.seed)
     teacher, teacher_card = (None, {}) if config.teacher_dir is None else load_teacher(config.teacher_dir, device)
     if teacher is not None:
-        check_teacher_fits(teacher, NavEnvConfig(squares_hide_privileged=teacher_hides_squares(teacher_card)), config.teacher_dir)
+        check_teacher_fits(teacher, NavEnvConfig(), config.teacher_dir)
     out = Path(config.out_dir or Path(config.policy_dir) / "eval")
     out.mkdir(parents=True, exist_ok=True)
     cells: list[dict] = []

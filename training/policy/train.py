@@ -21,7 +21,7 @@ from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .env import CRASH, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder
 from .field import check_vehicle, vehicle_env_overrides
-from .network import CHECKPOINT_KIND, TEACHER, ActorCritic, PolicyConfig, load_policy, policy_role
+from .network import CHECKPOINT_KIND, ActorCritic, PolicyConfig, load_policy, policy_role
 from .ppo import PpoConfig, ReturnNormalizer, Rollout, ppo_update
 
 log = logging.getLogger(__name__)
@@ -231,19 +231,6 @@ def check_resumed_task(state: dict, out: Path, encoder_dir, encoder_fingerprint:
                          f"but --end-at-goal was {given}; resume with the same episodes or start a new --out")  # fmt: skip
 
 
-def widen_inputs(state: dict, obs_dim: int) -> dict:
-    """A policy's weights for ``obs_dim`` inputs from one with fewer (a teacher given the hidden
-    shares after its depth): the new inputs get zero weights in the first layer and the normaliser's
-    identity (mean 0, variance 1), so the widened network acts as before until it learns to use them."""
-    state = dict(state)
-    first = next(k for k in state if k.startswith("mlp.") and k.endswith(".weight"))
-    extra = obs_dim - state[first].shape[1]
-    state[first] = torch.cat([state[first], state[first].new_zeros(state[first].shape[0], extra)], dim=1)
-    state["obs_norm.mean"] = torch.cat([state["obs_norm.mean"], state["obs_norm.mean"].new_zeros(extra)])
-    state["obs_norm.var"] = torch.cat([state["obs_norm.var"], state["obs_norm.var"].new_ones(extra)])
-    return state
-
-
 LATENT_STATS_RESETS = 8  # env resets whose first observations re-estimate the latent statistics
 
 
@@ -256,20 +243,16 @@ def init_from_policy(model: ActorCritic, init_dir: str, encoder_fingerprint: str
     of ``LATENT_STATS_RESETS`` env resets) so that the network again sees standardised latents.
     Returns what the card records: the source, its fingerprint, steps and encoder."""
     source, card = load_policy(init_dir, next(model.parameters()).device)
-    widened = source.config.obs_dim < model.config.obs_dim and card.get("meta", {}).get("role") == TEACHER
-    if replace(source.config, obs_dim=model.config.obs_dim) != model.config or (source.config.obs_dim != model.config.obs_dim and not widened):
+    if PolicyConfig.from_json(card["config"]) != model.config:
         raise ValueError(f"--init-from {init_dir}: its network {card['config']} differs from this run's "
                          f"{model.config.to_json()}; pass the --size it was trained with")  # fmt: skip
-    model.load_state_dict(widen_inputs(source.state_dict(), model.config.obs_dim) if widened else source.state_dict())
+    model.load_state_dict(source.state_dict())
     source_encoder = card.get("meta", {}).get("encoder_fingerprint")
     restandardised = source_encoder != encoder_fingerprint
     if restandardised:
         latents = torch.cat([env.reset()[:, OBS_LATENT] for _ in range(LATENT_STATS_RESETS)])
         model.obs_norm.mean[OBS_LATENT] = latents.mean(dim=0)
         model.obs_norm.var[OBS_LATENT] = latents.var(dim=0, unbiased=False)
-    if widened:
-        log.info("%s observes %d values, this run %d: the new inputs (the hidden shares) start with zero weights",
-                 init_dir, source.config.obs_dim, model.config.obs_dim)  # fmt: skip
     log.info("starting from %s (%s env steps, encoder %s)%s", init_dir, card.get("step"), source_encoder,
              "; latent statistics re-estimated on this encoder" if restandardised else "")  # fmt: skip
     return {"dir": str(init_dir), "fingerprint": checkpoint_fingerprint(init_dir), "env_steps": card.get("step"),

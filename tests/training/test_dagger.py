@@ -487,15 +487,3 @@ def test_the_squares_teacher_labels_the_squares_episodes_and_the_teacher_the_oth
     seq, stats = collect(student, teacher, env, carry, 8, 1.0, torch.Generator().manual_seed(0), squares_teacher=squares_teacher)
     assert stats["finished"] == 0  # no episode changed kind within the rollout
     assert bool((seq.labels[:, squares, 0] == 0.5).all()) and bool((seq.labels[:, ~squares, 0] == 0.1).all())
-
-
-def test_a_teacher_trained_under_the_squares_is_evaluated_under_them_too(tmp_path):
-    """Its Table II has the rows whose masks last the episode (hidden from it): the bound of a
-    student distilled from it there; a teacher with clean depth has not."""
-    out = tmp_path / "teacher-squares"
-    _cmnav(*TEACHER, "--out", str(out), "--steps", "128", "--squares-episode-fraction", "0.5")
-    stdout, _ = _cmnav("eval", "policy", "--policy", str(out), "--episodes", "2", "--levels", "0", "--batch-envs", "2",
-                       "--conditions", "clean,patches-100px,stereo", "--out", str(tmp_path / "eval"), "--json")  # fmt: skip
-    assert [c["condition"] for c in json.loads(stdout.strip().splitlines()[-1])["cells"]] == ["clean", "patches-100px"]
-    student_card = {"meta": {"role": "policy", "train": {"squares_episode_fraction": 0.25}}}
-    assert not teacher_hides_squares(student_card)  # a student's squares are its own input's

@@ -279,10 +279,8 @@ def load_teacher(teacher_dir: str | Path, device: torch.device) -> tuple[ActorCr
 
 def teacher_hides_squares(card: dict) -> bool:
     """The teacher (its card) was trained with the squares hiding its privileged depth
-    (`cmnav train teacher --squares-episode-fraction`): the envs it labels hide them from it too.
-    False for a student (its squares episodes are its own input's)."""
-    meta = card.get("meta", {})
-    return meta.get("role") == TEACHER and meta.get("train", {}).get("squares_episode_fraction", 0.0) > 0.0
+    (`cmnav train teacher --squares-episode-fraction`): the envs it labels hide them from it too."""
+    return card.get("meta", {}).get("train", {}).get("squares_episode_fraction", 0.0) > 0.0
 
 
 def check_teacher_fits(teacher: ActorCritic, env_config: NavEnvConfig, teacher_dir: str | Path) -> None:

@@ -220,11 +220,8 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
                              f"encoder): evaluate it without --encoder")  # fmt: skip
         # It sees clean depth and the true state whatever the camera and the estimate do: only the
         # rows with clean depth (clean, the vehicle-only px4) and the field (its vehicle, latency
-        # and speed caps; the bound of what a student distilled from it can reach) describe it; and
-        # for a teacher trained under the squares, the rows whose masks last the episode (hidden
-        # from it as from a student: the bound under them).
-        episode_masked = tuple(c for c in conditions if CONDITIONS[c].get("corruption") == "episode") if teacher_hides_squares(card) else ()
-        conditions = tuple(c for c in conditions if c == "clean" or c in PX4_VEHICLE_CONDITIONS + FIELD_CONDITIONS + episode_masked) or ("clean",)
+        # and speed caps; the bound of what a student distilled from it can reach) describe it.
+        conditions = tuple(c for c in conditions if c == "clean" or c in PX4_VEHICLE_CONDITIONS + FIELD_CONDITIONS) or ("clean",)
         fingerprint, encoder, action_parity = None, None, None
     elif config.encoder_dir is None:
         raise ValueError(f"{config.policy_dir} flies on an encoder's latent: pass --encoder (the checkpoint it was trained with)")
@@ -263,7 +260,7 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
             gaps, codes = [], []
             for k, (code, path, world, gap) in enumerate(
                 fly_episodes(policy, encoder, level, condition, config.episodes, config.batch_envs, device, config.room_seed,
-                             config.episode_duration_s, teacher, teacher_hides_squares(teacher_card if teacher is not None else card))
+                             config.episode_duration_s, teacher, teacher_hides_squares(teacher_card))
             ):
                 counts[code] += 1
                 if gap is not None:

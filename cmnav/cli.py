@@ -216,7 +216,7 @@ def _policy_train_config(args: argparse.Namespace, encoder_dir: str | None, corr
 def _cmd_train_policy(args: argparse.Namespace) -> int:
     if args.teacher is not None:
         return _train_student(args)
-    dagger_only = [f"--{name.replace('_', '-')}" for name in ("field", "projector_off_episode_fraction", "squares_episode_fraction", "squares_teacher",
+    dagger_only = [f"--{name.replace('_', '-')}" for name in ("field", "projector_off_episode_fraction", "squares_episode_fraction",
                                                              "beta_start", "beta_decay_env_steps", "near_weight")
                    if getattr(args, name) is not None and getattr(args, name) is not False]  # fmt: skip
     if dagger_only:
@@ -239,7 +239,7 @@ def _train_student(args: argparse.Namespace) -> int:
         max_wall_s=None if args.minutes is None else args.minutes * 60.0,
         **_given(args, "device", "seed", "corruption", "minibatches", "min_level", "max_level", "checkpoint_every", "precision",
                  "lr", "beta_start", "beta_decay_env_steps", "projector_off_episode_fraction", "squares_episode_fraction", "near_weight", "near_m",
-                 "vehicle", "end_at_goal", "field_depth", "field_env_fraction", num_envs="envs", outside_teacher_dir="outside_teacher", squares_teacher_dir="squares_teacher", rollout_steps="rollout", env_steps="steps", field_conditions="field"),
+                 "vehicle", "end_at_goal", "field_depth", "field_env_fraction", num_envs="envs", outside_teacher_dir="outside_teacher", rollout_steps="rollout", env_steps="steps", field_conditions="field"),
     )  # fmt: skip
     out = train_dagger(config)
     print(f"student checkpoint in {out}")
@@ -711,10 +711,6 @@ def build_parser() -> argparse.ArgumentParser:
     _config_option(policy, "--outside-teacher", "training.policy.dagger:DaggerConfig.outside_teacher_dir", metavar="TEACHER_DIR",
                    help="DAgger --field with --field-env-fraction below 1: the teacher of the envs outside the field "
                    "(default: --teacher)")  # fmt: skip
-    _config_option(policy, "--squares-teacher", "training.policy.dagger:DaggerConfig.squares_teacher_dir", metavar="TEACHER_DIR",
-                   help="DAgger with --squares-episode-fraction: the teacher of the squares episodes (default: that of "
-                   "their envs), e.g. one trained with cmnav train teacher --squares-episode-fraction, from which the squares "
-                   "are hidden as from the student")  # fmt: skip
     add_vehicle_option(policy, "training.policy.dagger:DaggerConfig.vehicle", "training.policy.train:PolicyTrainConfig.vehicle")
     add_end_at_goal_option(policy, "training.policy.dagger:DaggerConfig.end_at_goal", "training.policy.train:PolicyTrainConfig.end_at_goal")
     _config_option(policy, "--min-level", "training.policy.dagger:DaggerConfig.min_level", type=int,

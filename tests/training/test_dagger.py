@@ -445,45 +445,10 @@ def test_a_teacher_trained_under_the_squares_labels_its_students_squares_episode
     assert card["meta"]["train"]["squares_episode_fraction"] == 0.5 and teacher_hides_squares(card)
     assert not teacher_hides_squares(json.loads((trained / "teacher" / "model.json").read_text()))
     student = tmp_path / "student"
-    args = ["train", "policy", "--teacher", str(trained / "teacher"), "--encoder", str(trained / "enc"), "--size", "tiny",
-            "--envs", "4", "--rollout", "8", "--minibatches", "2", "--precision", "fp32", "--field", "--field-depth", "approx",
-            "--field-env-fraction", "0.5", "--squares-episode-fraction", "1", "--steps", "32"]  # fmt: skip
-    # As the teacher of every episode outside the field, or of their squares episodes alone.
-    for teacher_option in ("--outside-teacher", "--squares-teacher"):
-        _cmnav(*args, teacher_option, str(out), "--out", str(student / teacher_option))
-        meta = json.loads((student / teacher_option / "model.json").read_text())["meta"]
-        assert meta["squares_hidden_from_teacher"] == ["outside"]
-    assert meta["squares_teacher_fingerprint"] == checkpoint_fingerprint(out)
+    _cmnav("train", "policy", "--teacher", str(trained / "teacher"), "--outside-teacher", str(out), "--encoder", str(trained / "enc"),
+           "--out", str(student), "--size", "tiny", "--envs", "4", "--rollout", "8", "--minibatches", "2", "--precision", "fp32",
+           "--field", "--field-depth", "approx", "--field-env-fraction", "0.5", "--squares-episode-fraction", "1", "--steps", "32")  # fmt: skip
+    assert json.loads((student / "model.json").read_text())["meta"]["squares_hidden_from_teacher"] == ["outside"]
     # A student learns the squares by DAgger; PPO's teacher option is refused for it.
     with pytest.raises(ValueError, match="a student learns them by DAgger"):
         PolicyTrainConfig(encoder_dir="e", out_dir="o", squares_episode_fraction=0.5).validate()
-    with pytest.raises(ValueError, match="labels the squares episodes: give a squares_episode_fraction"):
-        DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", squares_teacher_dir=str(out)).validate()
-
-
-class ConstantTeacher(nn.Module):
-    """A privileged teacher that always answers ``action``."""
-
-    def __init__(self, action):
-        super().__init__()
-        self.action = torch.tensor(action)
-
-    def initial_hidden(self, batch, device="cpu"):
-        return torch.zeros(batch, 2, device=device)
-
-    def step(self, obs, hidden):
-        return self.action.expand(obs.shape[0], 3), torch.zeros(obs.shape[0]), hidden
-
-
-def test_the_squares_teacher_labels_the_squares_episodes_and_the_teacher_the_others():
-    encoder = Cmwae(make_config("tiny")).encoder
-    config = NavEnvConfig(num_envs=6, corruption="train", squares_episode_fraction=0.5, squares_hide_privileged=True, kick_probability=0.0)
-    env = NavEnv(config, encoder, "cpu", seed=0, teacher_obs=True)
-    teacher, squares_teacher = ConstantTeacher([0.1, 0.0, 0.0]), ConstantTeacher([0.5, 0.0, 0.0])
-    student = ActorCritic(PolicyConfig(mlp_sizes=(16,), gru_size=8))
-    carry = _carry(env, student, teacher) | {"h_squares": squares_teacher.initial_hidden(6)}
-    squares = env.squares_episode.clone()
-    assert 0 < int(squares.sum()) < 6
-    seq, stats = collect(student, teacher, env, carry, 8, 1.0, torch.Generator().manual_seed(0), squares_teacher=squares_teacher)
-    assert stats["finished"] == 0  # no episode changed kind within the rollout
-    assert bool((seq.labels[:, squares, 0] == 0.5).all()) and bool((seq.labels[:, ~squares, 0] == 0.1).all())

@@ -85,11 +85,6 @@ class DaggerConfig:
     # teacher), so that the student keeps what it flies outside the field (Table II's clean rows).
     field_env_fraction: float = 1.0
     outside_teacher_dir: str | None = None
-    # The teacher of the squares episodes (squares_episode_fraction; default: that of their envs),
-    # e.g. one trained under them (`cmnav train teacher --squares-episode-fraction`, the squares
-    # hidden from it as from the student) while the other episodes keep the teacher that flies
-    # best with everything in sight.
-    squares_teacher_dir: str | None = None
     # The vehicle the student flies: "ideal" (the batched sim's: commands followed at once) or
     # "px4" (PX4 v1.16's identified response, latency and EKF2-like estimates alone, Table II's
     # ``px4``: what `cmnav sitl --autopilot` flies); the field includes the latter.
@@ -152,9 +147,6 @@ class DaggerConfig:
         if self.squares_episode_fraction > 0.0 and all(in_field for in_field, _ in self.env_parts()):
             raise ValueError(f"squares_episode_fraction={self.squares_episode_fraction} applies to the envs outside the field, "
                              f"and field_env_fraction=1.0 puts every env in it: give a field_env_fraction below 1")  # fmt: skip
-        if self.squares_teacher_dir is not None and self.squares_episode_fraction == 0.0:
-            raise ValueError(f"squares_teacher_dir={self.squares_teacher_dir!r} labels the squares episodes: give a "
-                             f"squares_episode_fraction above 0")  # fmt: skip
         if not 0.0 <= self.beta_end <= self.beta_start <= 1.0:
             raise ValueError(f"need 0 <= beta_end ({self.beta_end}) <= beta_start ({self.beta_start}) <= 1")
         for key in ("env_steps", "num_envs", "rollout_steps", "buffer_rollouts", "epochs", "minibatches", "checkpoint_every"):
@@ -193,16 +185,14 @@ def near_surface_states(teacher_obs: Tensor, near_m: float) -> Tensor:
 
 @torch.no_grad()
 def collect(student: ActorCritic, teacher: ActorCritic, env: NavEnv, carry: dict, steps: int, beta: float,
-            generator: torch.Generator, near_weight: float = 0.0, near_m: float = NEAR_SURFACE_M,
-            squares_teacher: ActorCritic | None = None) -> tuple[Sequences, dict]:  # fmt: skip
+            generator: torch.Generator, near_weight: float = 0.0, near_m: float = NEAR_SURFACE_M) -> tuple[Sequences, dict]:  # fmt: skip
     """Fly ``steps`` steps with the beta-mixture of teacher and student; label every visited state
-    with the teacher's action (``squares_teacher``'s in the env's squares episodes, when given),
-    weighted 1 + ``near_weight`` at `near_surface_states`.  ``carry`` holds what continues between
-    calls: obs, teacher_obs, the GRU states, starts.  Returns the labelled sequences and episode counts."""
+    with the teacher's action, weighted 1 + ``near_weight`` at `near_surface_states`.  ``carry``
+    holds what continues between calls: obs, teacher_obs, both GRU states, starts.  Returns the
+    labelled sequences and episode counts."""
     student.eval()
     obs, teacher_obs = carry["obs"], carry["teacher_obs"]
     h_student, h_teacher, starts = carry["h_student"], carry["h_teacher"], carry["starts"]
-    h_squares = carry.get("h_squares")
     n = env.num_envs
     buf_obs = torch.zeros(steps, n, obs.shape[-1], device=obs.device)
     buf_starts = torch.zeros(steps, n, dtype=torch.bool, device=obs.device)
@@ -217,10 +207,6 @@ def collect(student: ActorCritic, teacher: ActorCritic, env: NavEnv, carry: dict
         h_teacher = torch.where(starts.unsqueeze(-1), torch.zeros_like(h_teacher), h_teacher)
         student_action, _, h_student = student.step(obs, h_student)
         teacher_action, _, h_teacher = teacher.step(teacher_obs, h_teacher)
-        if squares_teacher is not None:  # both carried along every env: each env's episodes may change kind
-            h_squares = torch.where(starts.unsqueeze(-1), torch.zeros_like(h_squares), h_squares)
-            squares_action, _, h_squares = squares_teacher.step(teacher_obs, h_squares)
-            teacher_action = torch.where(env.squares_episode.to(obs.device).unsqueeze(-1), squares_action, teacher_action)
         label = teacher_action.clamp(-1.0, 1.0)
         by_teacher = torch.rand(n, generator=generator).to(obs.device) < beta
         teacher_steps += int(by_teacher.sum())
@@ -230,7 +216,7 @@ def collect(student: ActorCritic, teacher: ActorCritic, env: NavEnv, carry: dict
         for code in outcomes:
             outcomes[code] += int((result.outcome[result.done] == code).sum())
         obs, teacher_obs, starts = result.obs, result.teacher_obs, result.done
-    carry.update(obs=obs, teacher_obs=teacher_obs, h_student=h_student, h_teacher=h_teacher, h_squares=h_squares, starts=starts)
+    carry.update(obs=obs, teacher_obs=teacher_obs, h_student=h_student, h_teacher=h_teacher, starts=starts)
     finished = sum(outcomes.values())
     stats = {"finished": float(finished), "teacher_share": teacher_steps / (steps * n)}
     if finished:
@@ -298,21 +284,16 @@ def train_dagger(config: DaggerConfig) -> Path:
     torch.manual_seed(config.seed)
     teacher, teacher_card = load_teacher(config.teacher_dir, device)
     outside_teacher, outside_card = (teacher, teacher_card) if config.outside_teacher_dir is None else load_teacher(config.outside_teacher_dir, device)
-    squares_teacher, squares_card = (None, None) if config.squares_teacher_dir is None else load_teacher(config.squares_teacher_dir, device)
     cmwae, encoder_card = load_cmwae(config.encoder_dir, device)
     encoder_fingerprint = checkpoint_fingerprint(config.encoder_dir)
     encoder = env_encoder(cmwae.encoder, config.precision, device, seed=config.seed)
-    parts = []  # (name, env, its teacher, its squares episodes' teacher or None, its carry): the field's envs first
+    parts = []  # (name, env, its teacher, its carry): the field's envs first
     for k, (in_field, n) in enumerate(config.env_parts()):
         part_teacher, part_card = (teacher, teacher_card) if in_field else (outside_teacher, outside_card)  # the same one unless the envs are split
-        env_config = config.env_config(in_field, n)
-        part_squares_teacher = squares_teacher if env_config.squares_episode_fraction > 0.0 else None
-        env_config = replace(env_config, squares_hide_privileged=teacher_hides_squares(part_card if part_squares_teacher is None else squares_card))
+        env_config = replace(config.env_config(in_field, n), squares_hide_privileged=teacher_hides_squares(part_card))
         check_teacher_fits(part_teacher, env_config, config.teacher_dir if in_field else config.outside_teacher_dir or config.teacher_dir)
-        if part_squares_teacher is not None:
-            check_teacher_fits(part_squares_teacher, env_config, config.squares_teacher_dir)
         env = NavEnv(env_config, encoder, device, seed=config.seed * 1000 + 7 + k, teacher_obs=True)
-        parts.append(("field" if in_field else "outside", env, part_teacher, part_squares_teacher, {}))
+        parts.append(("field" if in_field else "outside", env, part_teacher, {}))
     student = ActorCritic(config.policy).to(device)
     optimizer = torch.optim.Adam(student.parameters(), lr=config.lr)
     generator = torch.Generator().manual_seed(config.seed * 1000 + 11)
@@ -328,7 +309,7 @@ def train_dagger(config: DaggerConfig) -> Path:
         if len(rngs) != len(parts):
             raise ValueError(f"--resume: {out} trained {len(rngs)} group(s) of envs (in the field / outside it), this "
                              f"config gives {len(parts)}: resume with the same --field and --field-env-fraction")  # fmt: skip
-        for (_, part_env, *_), rng in zip(parts, rngs):
+        for (_, part_env, _, _), rng in zip(parts, rngs):
             part_env.generator.set_state(rng)
         generator.set_state(state["rng"])
         iteration, env_steps = state["iteration"], state["env_steps"]
@@ -351,13 +332,12 @@ def train_dagger(config: DaggerConfig) -> Path:
         "teacher": str(config.teacher_dir), "teacher_fingerprint": checkpoint_fingerprint(config.teacher_dir),
         "teacher_env_steps": teacher_card.get("step"),
         **({} if config.outside_teacher_dir is None else {"outside_teacher_fingerprint": checkpoint_fingerprint(config.outside_teacher_dir)}),
-        **({} if config.squares_teacher_dir is None else {"squares_teacher_fingerprint": checkpoint_fingerprint(config.squares_teacher_dir)}),
         "encoder": str(config.encoder_dir), "encoder_fingerprint": encoder_fingerprint,
         "encoder_step": encoder_card.get("step"),
         "encoder_scheme": encoder_card.get("meta", {}).get("train", {}).get("scheme"),
         "encoder_modalities": encoder_card["config"]["modalities"], "world_size": 1, "seed": config.seed,
     }  # fmt: skip
-    if hidden_from := [name for name, part_env, *_ in parts if part_env.config.squares_hide_privileged]:
+    if hidden_from := [name for name, part_env, _, _ in parts if part_env.config.squares_hide_privileged]:
         meta["squares_hidden_from_teacher"] = hidden_from  # the parts whose teacher flies without seeing the squares
     if init_meta is not None:
         meta["init_from"] = init_meta
@@ -372,20 +352,19 @@ def train_dagger(config: DaggerConfig) -> Path:
                                "encoder_fingerprint": encoder_fingerprint, "init_from": init_meta, "vehicle": config.vehicle,
                                "end_at_goal": config.end_at_goal})  # fmt: skip
 
-    for _, part_env, part_teacher, part_squares_teacher, carry in parts:
+    for _, part_env, part_teacher, carry in parts:
         n = part_env.num_envs
         carry.update(obs=part_env.reset(), teacher_obs=part_env.teacher_observation(), starts=torch.ones(n, dtype=torch.bool, device=device),
-                     h_student=student.initial_hidden(n, device), h_teacher=part_teacher.initial_hidden(n, device),
-                     h_squares=None if part_squares_teacher is None else part_squares_teacher.initial_hidden(n, device))  # fmt: skip
+                     h_student=student.initial_hidden(n, device), h_teacher=part_teacher.initial_hidden(n, device))  # fmt: skip
     buffer: deque[Sequences] = deque(maxlen=config.buffer_rollouts * len(parts))
     t_start = time.monotonic()
     while iteration < total_iterations:
         t_iter = time.monotonic()
         beta = config.beta(env_steps)
         stats = {}
-        for name, part_env, part_teacher, part_squares_teacher, carry in parts:
+        for name, part_env, part_teacher, carry in parts:
             sequences, part_stats = collect(student, part_teacher, part_env, carry, config.rollout_steps, beta, generator,
-                                            config.near_weight, config.near_m, part_squares_teacher)  # fmt: skip
+                                            config.near_weight, config.near_m)  # fmt: skip
             buffer.append(sequences)
             stats |= {(k if len(parts) == 1 else f"{name}/{k}"): v for k, v in part_stats.items()}
         loss = distill(student, optimizer, list(buffer), config.epochs, config.minibatches, config.max_grad_norm, generator)

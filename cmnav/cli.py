@@ -209,7 +209,6 @@ def _policy_train_config(args: argparse.Namespace, encoder_dir: str | None, corr
         max_wall_s=None if args.minutes is None else args.minutes * 60.0,
         **_given(args, "device", "seed", "checkpoint_every", "precision", "vehicle", "end_at_goal", num_envs="envs",
                  env_steps="steps"),
-        **({} if encoder_dir is not None else _given(args, "squares_episode_fraction")),
     )  # fmt: skip
 
 
@@ -734,10 +733,6 @@ def build_parser() -> argparse.ArgumentParser:
     teacher.add_argument("--init-from", metavar="TEACHER_DIR", help="start from this teacher checkpoint")
     add_vehicle_option(teacher, "training.policy.train:PolicyTrainConfig.vehicle")
     add_end_at_goal_option(teacher, "training.policy.train:PolicyTrainConfig.end_at_goal")
-    _config_option(teacher, "--squares-episode-fraction", "training.policy.train:PolicyTrainConfig.squares_episode_fraction", type=float,
-                   help="share of episodes that keep one mask of 50-100 px squares to 20-50 %% for the whole episode, "
-                   "hidden from the teacher's privileged depth as from a student's depth: its labels there are ones a "
-                   "student can follow (cmnav train policy --teacher DIR --squares-episode-fraction F distils them)")  # fmt: skip
     teacher.set_defaults(func=_cmd_train_teacher, precision=None)
 
     evaluate = sub.add_parser("eval", help="evaluate a trained encoder (Table I) or policy (Table II)")

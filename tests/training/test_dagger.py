@@ -23,10 +23,9 @@ from runtime.model import PolicyModel
 from training.checkpoint import checkpoint_fingerprint, load_train_state, save_weights
 from training.cmwae.model import Cmwae, make_config
 from training.data.tartanair import GrayDepthDataset, find_samples
-from training.policy.dagger import DaggerConfig, Sequences, collect, distill, load_teacher, near_surface_states, teacher_hides_squares
+from training.policy.dagger import DaggerConfig, Sequences, collect, distill, load_teacher, near_surface_states
 from training.policy.env import CurriculumConfig, NavEnv, NavEnvConfig
 from training.policy.network import ActorCritic, PolicyConfig, load_policy
-from training.policy.train import PolicyTrainConfig
 
 pytestmark = pytest.mark.timeout(300)
 GAP_SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "student-gap.py"
@@ -408,47 +407,3 @@ def test_squares_episodes_keep_one_large_mask_for_their_whole_episode():
     config = DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", field_conditions=True, field_env_fraction=0.5,
                           squares_episode_fraction=0.3)  # fmt: skip
     assert config.env_config(in_field=True).squares_episode_fraction == 0.0 and config.env_config(in_field=False).squares_episode_fraction == 0.3
-
-
-def test_the_squares_hide_the_teachers_privileged_depth_where_they_cover_the_student_s():
-    """squares_hide_privileged: a squares episode's mask leaves the render pixels it covers out of
-    the teacher's min-pool; a cell left with none reads invalid (0) as the student's masked pixels
-    do; elsewhere the teacher sees what it saw without it, and episodes without squares are untouched."""
-    config = NavEnvConfig(num_envs=6, corruption="train", corrupted_env_fraction=0.0, squares_episode_fraction=0.5)
-    hiding, seeing = (NavEnv(replace(config, squares_hide_privileged=hide), None, "cpu", seed=0) for hide in (True, False))
-    hidden_obs, clean_obs = hiding.reset()[:, STATE_DIM:], seeing.reset()[:, STATE_DIM:]
-    assert torch.equal(hiding.squares_episode, seeing.squares_episode) and 0 < int(hiding.squares_episode.sum()) < 6
-    width, height = config.privileged_depth_px
-    cells = hiding.privileged_hidden.view(6, height, 2, width, 2)
-    whole, some = cells.all(dim=4).all(dim=2).flatten(1), cells.any(dim=4).any(dim=2).flatten(1)
-    squares = hiding.squares_episode
-    assert not bool(hiding.privileged_hidden[~squares].any()) and torch.equal(hidden_obs[~squares], clean_obs[~squares])
-    for env in squares.nonzero().squeeze(1).tolist():
-        mask_share = float(hiding.episode_masks[env].float().mean())  # EPISODE_SQUARES: 20-50 % of the student's pixels
-        assert abs(float(hiding.privileged_hidden[env].float().mean()) - mask_share) < 0.08
-        assert bool((hidden_obs[env][whole[env]] == c.DEPTH_INVALID_VALUE).all()) and bool(whole[env].any())
-        assert torch.equal(hidden_obs[env][~some[env]], clean_obs[env][~some[env]])  # untouched cells: the same depth
-        partly = some[env] & ~whole[env]  # the nearest of the pixels left: never nearer than the clean cell
-        assert bool((hidden_obs[env][partly] >= clean_obs[env][partly]).all())
-    # The same mask a step later (the episode's), and the ``episode`` mode hides every env's mask.
-    hiding.step(torch.zeros(6, 3))
-    assert bool((hiding.teacher_observation()[:, STATE_DIM:][whole] == c.DEPTH_INVALID_VALUE).all())
-    table = NavEnv(NavEnvConfig(num_envs=3, corruption="episode", squares_hide_privileged=True), None, "cpu", seed=4)
-    table.reset()
-    assert all(bool(table.privileged_hidden[i].any()) for i in range(3) if bool(table.episode_masks[i].float().mean() > 0.2))
-
-
-def test_a_teacher_trained_under_the_squares_labels_its_students_squares_episodes_without_them(trained, tmp_path):
-    out = tmp_path / "teacher-squares"
-    _cmnav(*TEACHER, "--out", str(out), "--steps", "256", "--squares-episode-fraction", "0.5")
-    card = json.loads((out / "model.json").read_text())
-    assert card["meta"]["train"]["squares_episode_fraction"] == 0.5 and teacher_hides_squares(card)
-    assert not teacher_hides_squares(json.loads((trained / "teacher" / "model.json").read_text()))
-    student = tmp_path / "student"
-    _cmnav("train", "policy", "--teacher", str(trained / "teacher"), "--outside-teacher", str(out), "--encoder", str(trained / "enc"),
-           "--out", str(student), "--size", "tiny", "--envs", "4", "--rollout", "8", "--minibatches", "2", "--precision", "fp32",
-           "--field", "--field-depth", "approx", "--field-env-fraction", "0.5", "--squares-episode-fraction", "1", "--steps", "32")  # fmt: skip
-    assert json.loads((student / "model.json").read_text())["meta"]["squares_hidden_from_teacher"] == ["outside"]
-    # A student learns the squares by DAgger; PPO's teacher option is refused for it.
-    with pytest.raises(ValueError, match="a student learns them by DAgger"):
-        PolicyTrainConfig(encoder_dir="e", out_dir="o", squares_episode_fraction=0.5).validate()

@@ -210,15 +210,3 @@ def test_the_imitation_gap_before_crashes_takes_each_crashs_last_second():
     assert gap["imitation_gap"] == pytest.approx((15 + 10) / 65)
     assert gap["imitation_gap_before_crash"] == pytest.approx(1.0)
     assert imitation_gap([success], [SUCCESS])["imitation_gap_before_crash"] is None
-
-
-def test_a_teacher_that_flies_without_the_squares_labels_table2s_patch_rows_without_them():
-    """--teacher with a teacher trained under the squares (training.policy.dagger.teacher_hides_squares):
-    the gap of the patch rows is measured to its labels without the episode's masked depth."""
-    encoder = Cmwae(make_config("tiny")).encoder
-    views = {hide: table2_env(encoder, 5, "patches-100px", 2, "cpu", 0, teacher_obs=True, squares_hide_privileged=hide)
-             for hide in (True, False)}  # fmt: skip
-    for env in views.values():
-        env.reset()
-    depth = {hide: env.teacher_observation()[:, 15:] for hide, env in views.items()}
-    assert bool((depth[True] == 0.0).any()) and not bool((depth[False] == 0.0).any())

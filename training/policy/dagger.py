@@ -5,8 +5,7 @@ Every control step the executing policy is a mixture: in each env, with probabil
 teacher's action, else the student's (beta falls linearly from ``beta_start`` to ``beta_end``
 over ``beta_decay_env_steps``), so that the student soon visits its own states.  At every state
 visited the teacher labels the action it would take from its privileged observation (the 15 state
-values + clean low-resolution depth, its own GRU state carried along the same trajectory; a teacher
-trained under the squares, `teacher_hides_squares`, has them hidden from it here too), while
+values + clean low-resolution depth, its own GRU state carried along the same trajectory), while
 the student sees what the camera gives: gray + depth corrupted as the paper trains (1-30 px
 patches to 50 % in a random share of the envs each step, and projector-off episodes), through the
 frozen encoder.  Only the student learns: truncated back-propagation through time over each
@@ -65,8 +64,7 @@ class DaggerConfig:
     lr: float = 5e-4
     max_grad_norm: float = 1.0
     # The student's depth: "train" = the paper's training patches on a random share of envs each
-    # step; "none" = clean (the depth-only baseline).  The teacher sees clean depth (less the
-    # squares episodes' squares for a teacher trained under them: teacher_hides_squares).
+    # step; "none" = clean (the depth-only baseline).  The teacher always sees clean depth.
     corruption: str = "train"
     corrupted_env_fraction: float = 0.5
     projector_off_episode_fraction: float = 0.15
@@ -263,12 +261,6 @@ def load_teacher(teacher_dir: str | Path, device: torch.device) -> tuple[ActorCr
     return teacher, card
 
 
-def teacher_hides_squares(card: dict) -> bool:
-    """The teacher (its card) was trained with the squares hiding its privileged depth
-    (`cmnav train teacher --squares-episode-fraction`): the envs it labels hide them from it too."""
-    return card.get("meta", {}).get("train", {}).get("squares_episode_fraction", 0.0) > 0.0
-
-
 def check_teacher_fits(teacher: ActorCritic, env_config: NavEnvConfig, teacher_dir: str | Path) -> None:
     """Refuse a teacher whose observation is not ``env_config``'s privileged one (another depth size)."""
     if teacher.config.obs_dim != env_config.privileged_obs_dim:
@@ -283,14 +275,14 @@ def train_dagger(config: DaggerConfig) -> Path:
     out = Path(config.out_dir)
     torch.manual_seed(config.seed)
     teacher, teacher_card = load_teacher(config.teacher_dir, device)
-    outside_teacher, outside_card = (teacher, teacher_card) if config.outside_teacher_dir is None else load_teacher(config.outside_teacher_dir, device)
+    outside_teacher = teacher if config.outside_teacher_dir is None else load_teacher(config.outside_teacher_dir, device)[0]
     cmwae, encoder_card = load_cmwae(config.encoder_dir, device)
     encoder_fingerprint = checkpoint_fingerprint(config.encoder_dir)
     encoder = env_encoder(cmwae.encoder, config.precision, device, seed=config.seed)
     parts = []  # (name, env, its teacher, its carry): the field's envs first
     for k, (in_field, n) in enumerate(config.env_parts()):
-        part_teacher, part_card = (teacher, teacher_card) if in_field else (outside_teacher, outside_card)  # the same one unless the envs are split
-        env_config = replace(config.env_config(in_field, n), squares_hide_privileged=teacher_hides_squares(part_card))
+        env_config = config.env_config(in_field, n)
+        part_teacher = teacher if in_field else outside_teacher  # the same one unless the envs are split
         check_teacher_fits(part_teacher, env_config, config.teacher_dir if in_field else config.outside_teacher_dir or config.teacher_dir)
         env = NavEnv(env_config, encoder, device, seed=config.seed * 1000 + 7 + k, teacher_obs=True)
         parts.append(("field" if in_field else "outside", env, part_teacher, {}))
@@ -337,8 +329,6 @@ def train_dagger(config: DaggerConfig) -> Path:
         "encoder_scheme": encoder_card.get("meta", {}).get("train", {}).get("scheme"),
         "encoder_modalities": encoder_card["config"]["modalities"], "world_size": 1, "seed": config.seed,
     }  # fmt: skip
-    if hidden_from := [name for name, part_env, _, _ in parts if part_env.config.squares_hide_privileged]:
-        meta["squares_hidden_from_teacher"] = hidden_from  # the parts whose teacher flies without seeing the squares
     if init_meta is not None:
         meta["init_from"] = init_meta
 

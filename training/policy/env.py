@@ -29,7 +29,6 @@ from torch.nn import functional as F
 
 from runtime.contract.constants import (
     CONTROL_PERIOD_S,
-    DEPTH_INVALID_VALUE,
     DEPTH_MAX_M,
     EPISODE_DURATION_S,
     GOAL_REACHED_RADIUS_M,
@@ -155,13 +154,6 @@ class NavEnvConfig:
     # each cell, so that a 0.1 m rod is not lost between rays), normalised like the contract's.
     privileged_render_px: tuple[int, int] = (64, 36)  # width, height (the D455's 16:9)
     privileged_pool: int = 2
-    # Hide from the privileged depth what the student's depth loses for a whole episode (the
-    # squares episodes, the ``episode`` mode's masks): the render pixels the episode's mask covers
-    # for at least half their area are left out of the min-pool, and a cell left with none reads
-    # DEPTH_INVALID_VALUE as the student's masked pixels do.  A teacher trained so flies on what
-    # its student can know there, and its labels become ones the student can follow (a teacher
-    # that sees through the squares flies as near to the surfaces they hide as to visible ones).
-    squares_hide_privileged: bool = False
     world: WorldConfig = WorldConfig()
     # The vehicle's response; its command_delay_*_s (the autopilot's, e.g. PX4_SIH_V1_16's) hold
     # the commands back per axis at the physics rate, as sim.dynamics.CommandDelay does.
@@ -390,8 +382,6 @@ class NavEnv:
         self.episode_masks = torch.zeros(n, IMAGE_SIZE_PX, IMAGE_SIZE_PX, dtype=torch.bool)
         self.projector_off_episode = torch.zeros(n, dtype=torch.bool)
         self.squares_episode = torch.zeros(n, dtype=torch.bool)  # holds its episode_masks (squares_episode_fraction)
-        # [N, H, W] on the privileged render's grid: the pixels hidden from the teacher (squares_hide_privileged)
-        self.privileged_hidden = torch.zeros(n, height, width, dtype=torch.bool)
         self.active = torch.ones(n, dtype=torch.bool, device=self.device)
         self.last_render: RenderOutput | None = None
         self.last_gray: GrayFrame | None = None
@@ -489,11 +479,6 @@ class NavEnv:
             if bool(squares.any()):
                 coverage = EPISODE_SQUARES.sample_coverage(int(squares.sum()), self.generator)
                 self.episode_masks[envs[squares]] = patch_masks(coverage, EPISODE_SQUARES, self.generator)
-        if cfg.squares_hide_privileged:
-            holding = torch.ones(len(envs), dtype=torch.bool) if cfg.corruption == "episode" else self.squares_episode[envs]
-            width, height = cfg.privileged_render_px
-            covered = F.interpolate(self.episode_masks[envs].unsqueeze(1).float(), size=(height, width), mode="area").squeeze(1) >= 0.5
-            self.privileged_hidden[envs] = covered & holding.view(-1, 1, 1)
         self._reset_field(envs, fresh_state)
 
     def _reset_field(self, envs: Tensor, fresh_state: QuadState) -> None:
@@ -602,14 +587,9 @@ class NavEnv:
         depth = torch.nan_to_num(depth_m, nan=DEPTH_MAX_M, posinf=DEPTH_MAX_M)
         depth = torch.where(depth <= 0.0, torch.full_like(depth, DEPTH_MAX_M), depth)
         pool = self.config.privileged_pool
-        hidden = None
-        if self.config.squares_hide_privileged and bool(self.privileged_hidden.any()):
-            hidden = self.privileged_hidden.to(self.device)
-            depth = depth.masked_fill(hidden, math.inf)
         nearest = -F.max_pool2d(-depth.unsqueeze(1), pool).flatten(1)
         self._timed("privileged", t0)
-        normalised = (nearest * (1.0 / DEPTH_MAX_M)).clamp(0.0, 1.0)
-        return normalised if hidden is None else normalised.masked_fill(torch.isinf(nearest), DEPTH_INVALID_VALUE)
+        return (nearest * (1.0 / DEPTH_MAX_M)).clamp(0.0, 1.0)
 
     def _state_observation(self, estimated: bool = False) -> Tensor:
         """[N, 15] the contract's state values of the true state, or (``estimated``, with a state

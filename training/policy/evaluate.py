@@ -45,7 +45,7 @@ from ..progress import Progress
 from ..stats import wilson_interval
 from .env import (CRASH, OUTCOMES, STEREO_MODES, SUCCESS, TIMEOUT, CurriculumConfig, NavEnv, NavEnvConfig, env_encoder,
                   parity_frames)  # fmt: skip
-from .dagger import check_teacher_fits, load_teacher, teacher_hides_squares
+from .dagger import check_teacher_fits, load_teacher
 from .field import field_description, field_env_overrides, px4_vehicle_env_overrides
 from .network import TEACHER, check_trained_on, load_policy
 
@@ -128,12 +128,11 @@ def condition_env_overrides(condition: str) -> dict:
 
 
 def table2_env(encoder, level: int, condition: str, num_envs: int, device, seed: int, first_episode: int = 0,
-               teacher_obs: bool = False, episode_duration_s: float | None = None, squares_hide_privileged: bool = False) -> NavEnv:  # fmt: skip
+               teacher_obs: bool = False, episode_duration_s: float | None = None) -> NavEnv:  # fmt: skip
     """The env of Table II's episodes ``first_episode`` .. ``first_episode + num_envs - 1`` at
     ``level`` under ``condition``: no kicks, no reset after an episode ends.  Its rooms depend on
     (seed, level, episode number), not on the condition or policy."""
     overrides = condition_env_overrides(condition) | ({} if episode_duration_s is None else {"episode_duration_s": episode_duration_s})
-    overrides["squares_hide_privileged"] = squares_hide_privileged
     config = NavEnvConfig(num_envs=num_envs, kick_probability=0.0, **overrides,
                           curriculum=CurriculumConfig(start_level=level, min_level=level, max_level=level))  # fmt: skip
     return NavEnv(config, encoder, device, seed=seed * 100_003 + level * 1009 + first_episode, fixed_level=level,
@@ -142,18 +141,16 @@ def table2_env(encoder, level: int, condition: str, num_envs: int, device, seed:
 
 @torch.no_grad()
 def fly_episodes(policy, encoder, level: int, condition: str, episodes: int, batch_envs: int, device, seed: int,
-                 episode_duration_s: float | None = None, teacher=None, teacher_hides_squares: bool = False):  # fmt: skip
+                 episode_duration_s: float | None = None, teacher=None):  # fmt: skip
     """Fly ``episodes`` episodes at ``level`` under ``condition``; yields per episode
     (outcome code, trajectory [T, 3], world description, gap).  With a ``teacher`` (its privileged
-    observation: the true state and clean depth, the episode's masks hidden from it when it
-    ``teacher_hides_squares``), gap [T] is the squared distance of the policy's action from the
-    teacher's label at every step flown (what DAgger regresses); None without."""
+    observation: the true state and clean depth), gap [T] is the squared distance of the policy's
+    action from the teacher's label at every step flown (what DAgger regresses); None without."""
     done_count = 0
     while done_count < episodes:
         n = min(batch_envs, episodes - done_count)
         env = table2_env(encoder, level, condition, n, device, seed, first_episode=done_count,
-                         teacher_obs=teacher is not None, episode_duration_s=episode_duration_s,
-                         squares_hide_privileged=teacher_hides_squares)  # fmt: skip
+                         teacher_obs=teacher is not None, episode_duration_s=episode_duration_s)  # fmt: skip
         obs = env.reset()
         teacher_obs = None if teacher is None else env.teacher_observation()
         teacher_hidden = None if teacher is None else teacher.initial_hidden(n, device)
@@ -230,7 +227,7 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
         cmwae, _ = load_cmwae(config.encoder_dir, device)
         encoder = env_encoder(cmwae.encoder, config.precision, device, seed=config.seed)
         action_parity = check_policy_parity(policy, cmwae.encoder, encoder, device, config.seed)
-    teacher, teacher_card = (None, {}) if config.teacher_dir is None else load_teacher(config.teacher_dir, device)
+    teacher = None if config.teacher_dir is None else load_teacher(config.teacher_dir, device)[0]
     if teacher is not None:
         check_teacher_fits(teacher, NavEnvConfig(), config.teacher_dir)
     out = Path(config.out_dir or Path(config.policy_dir) / "eval")
@@ -260,7 +257,7 @@ def evaluate_policy(config: PolicyEvalConfig) -> dict:
             gaps, codes = [], []
             for k, (code, path, world, gap) in enumerate(
                 fly_episodes(policy, encoder, level, condition, config.episodes, config.batch_envs, device, config.room_seed,
-                             config.episode_duration_s, teacher, teacher_hides_squares(teacher_card))
+                             config.episode_duration_s, teacher)
             ):
                 counts[code] += 1
                 if gap is not None:

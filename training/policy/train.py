@@ -52,25 +52,14 @@ class PolicyTrainConfig:
     vehicle: str = "ideal"
     # Episodes end in success at the goal, as the runtime's do (NavEnvConfig.end_at_goal).
     end_at_goal: bool = False
-    # A teacher only: this share of its episodes keeps one mask of large squares for the whole
-    # episode (NavEnvConfig.squares_episode_fraction) and the squares hide its privileged depth
-    # (NavEnvConfig.squares_hide_privileged), so it learns to fly on what a student sees there.
-    squares_episode_fraction: float = 0.0
 
     def env_config(self) -> NavEnvConfig:
-        # A teacher renders no camera depth: its squares episodes need the ``train`` mode that draws them.
-        squares = {"corruption": "train", "squares_episode_fraction": self.squares_episode_fraction,
-                   "squares_hide_privileged": True} if self.squares_episode_fraction > 0.0 else {}  # fmt: skip
         return replace(NavEnvConfig(num_envs=self.num_envs, corruption=self.corruption, curriculum=self.curriculum,
                                     end_at_goal=self.end_at_goal),
-                       **(vehicle_env_overrides(self.vehicle) | squares | self.env_overrides))  # fmt: skip
+                       **vehicle_env_overrides(self.vehicle), **self.env_overrides)  # fmt: skip
 
     def validate(self) -> None:
         check_vehicle(self.vehicle)
-        if self.squares_episode_fraction > 0.0 and self.encoder_dir is not None:
-            raise ValueError(f"squares_episode_fraction={self.squares_episode_fraction} hides the squares from a teacher's "
-                             f"privileged depth; a student learns them by DAgger: cmnav train policy --teacher DIR "
-                             f"--squares-episode-fraction F")  # fmt: skip
         if self.env_steps < 1:
             raise ValueError(f"env_steps={self.env_steps} must be >= 1")
         if self.checkpoint_every < 1:

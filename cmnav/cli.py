@@ -215,7 +215,7 @@ def _policy_train_config(args: argparse.Namespace, encoder_dir: str | None, corr
 def _cmd_train_policy(args: argparse.Namespace) -> int:
     if args.teacher is not None:
         return _train_student(args)
-    dagger_only = [f"--{name.replace('_', '-')}" for name in ("field", "projector_off_episode_fraction", "squares_episode_fraction",
+    dagger_only = [f"--{name.replace('_', '-')}" for name in ("field", "projector_off_episode_fraction", "squares_episode_fraction", "squares_teacher_view",
                                                              "beta_start", "beta_decay_env_steps", "near_weight")
                    if getattr(args, name) is not None and getattr(args, name) is not False]  # fmt: skip
     if dagger_only:
@@ -237,7 +237,7 @@ def _train_student(args: argparse.Namespace) -> int:
         policy=POLICY_SIZES[args.size], resume=args.resume, keep_checkpoints=args.keep_checkpoints, init_from=args.init_from,
         max_wall_s=None if args.minutes is None else args.minutes * 60.0,
         **_given(args, "device", "seed", "corruption", "minibatches", "min_level", "max_level", "checkpoint_every", "precision",
-                 "lr", "beta_start", "beta_decay_env_steps", "projector_off_episode_fraction", "squares_episode_fraction", "near_weight", "near_m",
+                 "lr", "beta_start", "beta_decay_env_steps", "projector_off_episode_fraction", "squares_episode_fraction", "squares_teacher_view", "near_weight", "near_m",
                  "vehicle", "end_at_goal", "field_depth", "field_env_fraction", num_envs="envs", outside_teacher_dir="outside_teacher", rollout_steps="rollout", env_steps="steps", field_conditions="field"),
     )  # fmt: skip
     out = train_dagger(config)
@@ -696,6 +696,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="DAgger: share of the other episodes (outside the field, with --corruption train) that keep one "
                    "mask of 50-100 px squares to 20-50 %% for the whole episode instead of the per-step 1-30 px patches "
                    "(the kind of loss of Table II's patches-100px)")  # fmt: skip
+    _config_option(policy, "--squares-teacher-view", "training.policy.dagger:DaggerConfig.squares_teacher_view", choices=("clean", "reconstructed"),
+                   help="DAgger: what the teacher sees under the squares of --squares-episode-fraction: the clean depth, or "
+                   "the encoder's reconstruction from the student's gray + masked depth (what the student can know there)")  # fmt: skip
     _config_option(policy, "--field", "training.policy.dagger:DaggerConfig.field_conditions", action="store_true",
                    help="DAgger: train in the field, Table II's `field` condition (stereo depth in place of --corruption, the "
                    "gray camera's exposure and noise, image-to-command latency, PX4's randomized response, EKF2-like "

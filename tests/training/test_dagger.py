@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from export.policy_onnx import PARITY_TOLERANCE, ExportError, export_policy, load_networks, random_inputs, torch_outputs
 from runtime.contract import constants as c
@@ -407,3 +408,33 @@ def test_squares_episodes_keep_one_large_mask_for_their_whole_episode():
     config = DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", field_conditions=True, field_env_fraction=0.5,
                           squares_episode_fraction=0.3)  # fmt: skip
     assert config.env_config(in_field=True).squares_episode_fraction == 0.0 and config.env_config(in_field=False).squares_episode_fraction == 0.3
+
+
+def test_the_teacher_sees_the_encoders_reconstruction_under_the_squares_when_asked():
+    """squares_privileged="reconstructed": under a squares episode's mask (the render pixels it
+    covers for at least half their area) the teacher's depth is the decoder's reconstruction from
+    the student's latent; elsewhere, and in the episodes without squares, the clean depth."""
+    torch.manual_seed(0)
+    cmwae = Cmwae(make_config("tiny"))
+    config = NavEnvConfig(num_envs=6, corruption="train", corrupted_env_fraction=0.0, squares_episode_fraction=0.5)
+    recon_env, clean_env = (NavEnv(replace(config, squares_privileged=view), cmwae.encoder, "cpu", seed=0, teacher_obs=True,
+                                   decoder=cmwae.decoder) for view in ("reconstructed", "clean"))  # fmt: skip
+    recon_env.reset(), clean_env.reset()
+    shown, clean = recon_env.teacher_observation()[:, STATE_DIM:], clean_env.teacher_observation()[:, STATE_DIM:]
+    squares = recon_env.squares_episode
+    assert 0 < int(squares.sum()) < 6 and torch.equal(squares, clean_env.squares_episode)
+    assert torch.equal(shown[~squares], clean[~squares]) and not torch.equal(shown[squares], clean[squares])
+    # Where the mask covers whole cells, the cell is the nearest reconstructed pixel.
+    width, height = config.privileged_render_px
+    env = int(squares.nonzero()[0])
+    masked = F.interpolate(recon_env.episode_masks[env][None, None].float(), size=(height, width), mode="area")[0, 0] >= 0.5
+    recon_m = F.interpolate(cmwae.decoder(recon_env.last_latent[env : env + 1]), size=(height, width), mode="area")[0, 0] * c.DEPTH_MAX_M
+    whole = masked.view(height // 2, 2, width // 2, 2).all(dim=3).all(dim=1).flatten()
+    nearest = -F.max_pool2d(-recon_m[None, None], 2).flatten()
+    torch.testing.assert_close(shown[env][whole], (nearest[whole] / c.DEPTH_MAX_M).clamp(0, 1))
+    with pytest.raises(ValueError, match="needs the encoder and its decoder"):
+        NavEnv(replace(config, squares_privileged="reconstructed"), cmwae.encoder, "cpu")
+    with pytest.raises(ValueError, match="give a squares_episode_fraction above 0"):
+        DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", squares_teacher_view="reconstructed").validate()
+    assert DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", field_conditions=True, field_env_fraction=0.5, squares_episode_fraction=0.3,
+                        squares_teacher_view="reconstructed").env_config(in_field=False).squares_privileged == "reconstructed"  # fmt: skip

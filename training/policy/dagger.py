@@ -71,6 +71,9 @@ class DaggerConfig:
     # Of the other episodes outside the field, this share keeps one mask of large squares for the
     # whole episode (NavEnvConfig.squares_episode_fraction) instead of the per-step patches.
     squares_episode_fraction: float = 0.0
+    # What the teacher sees under those squares (NavEnvConfig.squares_privileged): "clean" depth,
+    # or "reconstructed": the encoder's reconstruction from the student's gray + masked depth.
+    squares_teacher_view: str = "clean"
     # Train in the field (training.policy.field, Table II's ``field``): the student sees the
     # simulated D455's stereo depth (in place of ``corruption``) and the gray camera, latency,
     # PX4's randomized response, EKF2-like estimates and the field config's speed caps act.
@@ -125,6 +128,7 @@ class DaggerConfig:
                                     corrupted_env_fraction=self.corrupted_env_fraction, level_sampling="uniform",
                                     projector_off_episode_fraction=self.projector_off_episode_fraction,
                                     squares_episode_fraction=0.0 if in_field else self.squares_episode_fraction,
+                                    squares_privileged="clean" if in_field else self.squares_teacher_view,
                                     end_at_goal=self.end_at_goal and (in_field or not self.field_conditions)),
                        **(field_options | self.env_overrides))  # fmt: skip
 
@@ -145,6 +149,9 @@ class DaggerConfig:
         if self.squares_episode_fraction > 0.0 and all(in_field for in_field, _ in self.env_parts()):
             raise ValueError(f"squares_episode_fraction={self.squares_episode_fraction} applies to the envs outside the field, "
                              f"and field_env_fraction=1.0 puts every env in it: give a field_env_fraction below 1")  # fmt: skip
+        if self.squares_teacher_view != "clean" and self.squares_episode_fraction == 0.0:
+            raise ValueError(f"squares_teacher_view={self.squares_teacher_view!r} is the teacher's view under the squares "
+                             f"episodes' squares: give a squares_episode_fraction above 0")  # fmt: skip
         if not 0.0 <= self.beta_end <= self.beta_start <= 1.0:
             raise ValueError(f"need 0 <= beta_end ({self.beta_end}) <= beta_start ({self.beta_start}) <= 1")
         for key in ("env_steps", "num_envs", "rollout_steps", "buffer_rollouts", "epochs", "minibatches", "checkpoint_every"):
@@ -284,7 +291,7 @@ def train_dagger(config: DaggerConfig) -> Path:
         env_config = config.env_config(in_field, n)
         part_teacher = teacher if in_field else outside_teacher  # the same one unless the envs are split
         check_teacher_fits(part_teacher, env_config, config.teacher_dir if in_field else config.outside_teacher_dir or config.teacher_dir)
-        env = NavEnv(env_config, encoder, device, seed=config.seed * 1000 + 7 + k, teacher_obs=True)
+        env = NavEnv(env_config, encoder, device, seed=config.seed * 1000 + 7 + k, teacher_obs=True, decoder=cmwae.decoder)
         parts.append(("field" if in_field else "outside", env, part_teacher, {}))
     student = ActorCritic(config.policy).to(device)
     optimizer = torch.optim.Adam(student.parameters(), lr=config.lr)

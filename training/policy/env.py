@@ -66,6 +66,7 @@ STEREO_MODES = {"stereo": True, "stereo-projector-off": False}
 # ... and those of its parametric stand-in (sim.sensor.approx: 3x the env-steps/s, its error stated in docs/sensor.md).
 APPROX_STEREO_MODES = {"stereo-approx": True, "stereo-approx-projector-off": False}
 LEVEL_SAMPLING = ("curriculum", "uniform")
+SQUARES_PRIVILEGED = ("clean", "reconstructed")  # NavEnvConfig.squares_privileged
 
 
 @dataclass(frozen=True)
@@ -154,6 +155,12 @@ class NavEnvConfig:
     # each cell, so that a 0.1 m rod is not lost between rays), normalised like the contract's.
     privileged_render_px: tuple[int, int] = (64, 36)  # width, height (the D455's 16:9)
     privileged_pool: int = 2
+    # The teacher's depth under the masks an episode keeps (the squares episodes, the ``episode``
+    # mode's): "clean" (it sees through them), or "reconstructed": in the render pixels the mask
+    # covers for at least half their area, the depth the encoder reconstructs from the student's
+    # gray + masked depth (NavEnv's ``decoder`` on the student's latent), i.e. what the student can
+    # know there through the paper's cross-modal encoder, so that its labels are ones it can follow.
+    squares_privileged: str = "clean"
     world: WorldConfig = WorldConfig()
     # The vehicle's response; its command_delay_*_s (the autopilot's, e.g. PX4_SIH_V1_16's) hold
     # the commands back per axis at the physics rate, as sim.dynamics.CommandDelay does.
@@ -202,6 +209,8 @@ class NavEnvConfig:
         if self.squares_episode_fraction > 0.0 and self.corruption != "train":
             raise ValueError(f"squares_episode_fraction={self.squares_episode_fraction} needs corruption='train' "
                              f"(it replaces that mode's per-step patches), not {self.corruption!r}")  # fmt: skip
+        if self.squares_privileged not in SQUARES_PRIVILEGED:
+            raise ValueError(f"squares_privileged={self.squares_privileged!r} must be one of {SQUARES_PRIVILEGED}")
         if self.level_sampling not in LEVEL_SAMPLING:
             raise ValueError(f"level_sampling={self.level_sampling!r} must be one of {LEVEL_SAMPLING}")
         if self.physics_substeps < 1:
@@ -328,7 +337,8 @@ class NavEnv:
     observation is the 15 state values then the privileged low-resolution clean depth, and no
     224 image is rendered.  ``teacher_obs``: also give the privileged observation of every state
     (``StepOutput.teacher_obs``, :meth:`teacher_observation`) for DAgger.  ``fixed_level``:
-    every episode at this level and no curriculum (evaluation).  Episode seeds derive from
+    every episode at this level and no curriculum (evaluation).  ``decoder``: the encoder's depth
+    decoder, for ``squares_privileged="reconstructed"``.  Episode seeds derive from
     ``seed``, the env index and the episode count, so the same seed gives the same rooms
     whatever policy flies them."""
 
@@ -341,8 +351,13 @@ class NavEnv:
         fixed_level: int | None = None,
         auto_reset: bool = True,
         teacher_obs: bool = False,
+        decoder: nn.Module | None = None,
     ) -> None:
         config.validate()
+        if config.squares_privileged == "reconstructed" and (encoder is None or decoder is None):
+            raise ValueError("squares_privileged='reconstructed' gives the teacher the encoder's reconstruction under the "
+                             "squares: the env needs the encoder and its decoder")  # fmt: skip
+        self.decoder = None if decoder is None else decoder.to(device).eval().requires_grad_(False)
         self.config = config
         self.device = torch.device(device)
         self.encoder = None if encoder is None else encoder.to(self.device).eval()
@@ -384,6 +399,7 @@ class NavEnv:
         self.squares_episode = torch.zeros(n, dtype=torch.bool)  # holds its episode_masks (squares_episode_fraction)
         self.active = torch.ones(n, dtype=torch.bool, device=self.device)
         self.last_render: RenderOutput | None = None
+        self.last_latent: Tensor | None = None  # [N, 64] the student's latent of the current observation
         self.last_gray: GrayFrame | None = None
 
     def _init_field(self, config: NavEnvConfig) -> None:
@@ -586,10 +602,29 @@ class NavEnv:
         depth_m = render(self.world, cam_pos, cam_quat, self.privileged_camera).depth_m
         depth = torch.nan_to_num(depth_m, nan=DEPTH_MAX_M, posinf=DEPTH_MAX_M)
         depth = torch.where(depth <= 0.0, torch.full_like(depth, DEPTH_MAX_M), depth)
+        if self.config.squares_privileged == "reconstructed":
+            depth = self._reconstruct_masked(depth)
         pool = self.config.privileged_pool
         nearest = -F.max_pool2d(-depth.unsqueeze(1), pool).flatten(1)
         self._timed("privileged", t0)
         return (nearest * (1.0 / DEPTH_MAX_M)).clamp(0.0, 1.0)
+
+    def _reconstruct_masked(self, depth_m: Tensor) -> Tensor:
+        """``depth_m`` [N, H, W] (the privileged render) with the pixels under the episode-long masks
+        replaced by the decoder's reconstruction from the student's current latent."""
+        holding = torch.ones_like(self.squares_episode) if self.config.corruption == "episode" else self.squares_episode
+        envs = holding.nonzero().squeeze(1)
+        if not len(envs):
+            return depth_m
+        size = tuple(depth_m.shape[-2:])
+        masked = F.interpolate(self.episode_masks[envs].unsqueeze(1).float(), size=size, mode="area").squeeze(1) >= 0.5
+        with torch.inference_mode():
+            recon = self.decoder(self.last_latent[envs.to(self.device)])
+        recon_m = F.interpolate(recon.float(), size=size, mode="area").squeeze(1) * DEPTH_MAX_M
+        depth_m = depth_m.clone()
+        dev_envs = envs.to(self.device)
+        depth_m[dev_envs] = torch.where(masked.to(self.device), recon_m, depth_m[dev_envs])
+        return depth_m
 
     def _state_observation(self, estimated: bool = False) -> Tensor:
         """[N, 15] the contract's state values of the true state, or (``estimated``, with a state
@@ -623,6 +658,7 @@ class NavEnv:
                     latent[live] = self.encoder(gray[live], depth[live]).float()
         self._timed("encode", t0)
         assert latent.shape == (self.num_envs, LATENT_DIM)
+        self.last_latent = latent
         obs = torch.cat([self._state_observation(estimated=True), latent.clone()], dim=-1)
         assert obs.shape[-1] == OBSERVATION_DIM
         return obs

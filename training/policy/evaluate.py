@@ -128,15 +128,18 @@ def condition_env_overrides(condition: str) -> dict:
 
 
 def table2_env(encoder, level: int, condition: str, num_envs: int, device, seed: int, first_episode: int = 0,
-               teacher_obs: bool = False, episode_duration_s: float | None = None) -> NavEnv:  # fmt: skip
+               teacher_obs: bool = False, episode_duration_s: float | None = None, decoder=None) -> NavEnv:  # fmt: skip
     """The env of Table II's episodes ``first_episode`` .. ``first_episode + num_envs - 1`` at
     ``level`` under ``condition``: no kicks, no reset after an episode ends.  Its rooms depend on
-    (seed, level, episode number), not on the condition or policy."""
+    (seed, level, episode number), not on the condition or policy.  With the encoder's ``decoder``
+    the teacher's privileged depth under the episode's masks is its reconstruction
+    (NavEnvConfig.squares_privileged)."""
     overrides = condition_env_overrides(condition) | ({} if episode_duration_s is None else {"episode_duration_s": episode_duration_s})
+    overrides |= {} if decoder is None else {"squares_privileged": "reconstructed"}
     config = NavEnvConfig(num_envs=num_envs, kick_probability=0.0, **overrides,
                           curriculum=CurriculumConfig(start_level=level, min_level=level, max_level=level))  # fmt: skip
     return NavEnv(config, encoder, device, seed=seed * 100_003 + level * 1009 + first_episode, fixed_level=level,
-                  auto_reset=False, teacher_obs=teacher_obs)  # fmt: skip
+                  auto_reset=False, teacher_obs=teacher_obs, decoder=decoder)  # fmt: skip
 
 
 @torch.no_grad()

@@ -30,6 +30,7 @@ from training.policy.network import ActorCritic, PolicyConfig, load_policy
 
 pytestmark = pytest.mark.timeout(300)
 GAP_SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "student-gap.py"
+BOUND_SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "squares-bound.py"
 TEACHER = ["train", "teacher", "--size", "tiny", "--envs", "16", "--rollout", "8", "--minibatches", "2",
            "--checkpoint-every", "2", "--curriculum-window", "4", "--max-level", "3"]  # fmt: skip
 
@@ -438,3 +439,14 @@ def test_the_teacher_sees_the_encoders_reconstruction_under_the_squares_when_ask
         DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", squares_teacher_view="reconstructed").validate()
     assert DaggerConfig(teacher_dir="t", encoder_dir="e", out_dir="o", field_conditions=True, field_env_fraction=0.5, squares_episode_fraction=0.3,
                         squares_teacher_view="reconstructed").env_config(in_field=False).squares_privileged == "reconstructed"  # fmt: skip
+
+
+def test_the_squares_bound_script_flies_the_teacher_on_each_view(trained):
+    proc = subprocess.run([sys.executable, str(BOUND_SCRIPT), "--teacher", str(trained / "teacher"), "--encoder", str(trained / "enc"),
+                           "--levels", "0", "--episodes", "2"], capture_output=True, text=True, timeout=280)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = proc.stdout.strip().splitlines()
+    assert [line.split()[2] for line in lines] == ["clean", "reconstructed"] and all("success" in line for line in lines)
+    bad = subprocess.run([sys.executable, str(BOUND_SCRIPT), "--teacher", "t", "--encoder", "e", "--views", "far"],
+                         capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert bad.returncode == 2 and "choose from clean, reconstructed" in bad.stderr

@@ -357,12 +357,12 @@ class NavEnv:
         if config.squares_privileged == "reconstructed" and (encoder is None or decoder is None):
             raise ValueError("squares_privileged='reconstructed' gives the teacher the encoder's reconstruction under the "
                              "squares: the env needs the encoder and its decoder")  # fmt: skip
-        self.decoder = None if decoder is None else decoder.to(device).eval().requires_grad_(False)
         self.config = config
         self.device = torch.device(device)
         self.encoder = None if encoder is None else encoder.to(self.device).eval()
         for p in self.encoder.parameters() if self.encoder is not None else ():
             p.requires_grad_(False)
+        self.decoder = None if decoder is None else decoder.to(self.device).eval().requires_grad_(False)
         self.with_teacher_obs = teacher_obs
         width, height = config.privileged_render_px
         self.privileged_camera = CameraModel(width_px=width, height_px=height)

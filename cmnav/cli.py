@@ -17,6 +17,7 @@ VEHICLE_CHOICES = ("ideal", "px4", "field")  # training.policy.field.VEHICLES, l
 SITL_ESTIMATES = ("exact", "px4")  # sim.sitl.estimate.ESTIMATES, likewise
 VELOCITY_BIAS_MODES = ("correct", "off")  # runtime.tracking.VELOCITY_BIAS_MODES, likewise
 APPROACH_CAP_MODES = ("on", "off")  # runtime.programs.sitl.APPROACH_CAP_MODES, likewise
+SQUARES_TEACHER_VIEWS = ("clean", "reconstructed")  # training.policy.env.SQUARES_PRIVILEGED, likewise
 
 
 def _cmd_sitl(args: argparse.Namespace) -> int:
@@ -696,7 +697,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="DAgger: share of the other episodes (outside the field, with --corruption train) that keep one "
                    "mask of 50-100 px squares to 20-50 %% for the whole episode instead of the per-step 1-30 px patches "
                    "(the kind of loss of Table II's patches-100px)")  # fmt: skip
-    _config_option(policy, "--squares-teacher-view", "training.policy.dagger:DaggerConfig.squares_teacher_view", choices=("clean", "reconstructed"),
+    _config_option(policy, "--squares-teacher-view", "training.policy.dagger:DaggerConfig.squares_teacher_view", choices=SQUARES_TEACHER_VIEWS,
                    help="DAgger: what the teacher sees under the squares of --squares-episode-fraction: the clean depth, or "
                    "the encoder's reconstruction from the student's gray + masked depth (what the student can know there)")  # fmt: skip
     _config_option(policy, "--field", "training.policy.dagger:DaggerConfig.field_conditions", action="store_true",

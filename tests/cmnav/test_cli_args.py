@@ -100,6 +100,13 @@ def test_the_vehicle_choices_are_trainings():
     assert VEHICLE_CHOICES == VEHICLES
 
 
+def test_the_squares_teacher_views_are_the_envs():
+    from cmnav.cli import SQUARES_TEACHER_VIEWS
+    from training.policy.env import SQUARES_PRIVILEGED
+
+    assert SQUARES_TEACHER_VIEWS == SQUARES_PRIVILEGED
+
+
 def test_dagger_options_without_a_teacher_are_refused_not_ignored(tmp_path):
     out = tmp_path / "policy"
     proc = _cmnav("train", "policy", "--encoder", "e", "--out", str(out), "--squares-episode-fraction", "0.3", "--beta-start", "0")

@@ -26,8 +26,8 @@ install: $(BIN)/.installed
 runs/models/goal-seeker.onnx: $(BIN)/.installed export/goal_seeker.py
 	$(BIN)/cmnav export goal-seeker -o $@
 
-models/default.onnx: $(BIN)/.installed models/cmwae-pooled/model.json models/student-pooled/model.json
-	$(BIN)/cmnav export --encoder models/cmwae-pooled --policy models/student-pooled -o $@
+models/default.onnx: $(BIN)/.installed models/cmwae-stereo/model.json models/student-stereo/model.json
+	$(BIN)/cmnav export --encoder models/cmwae-stereo --policy models/student-stereo -o $@
 
 # Exit code 1 is an outcome (crash or timeout, in the JSON summary), not a failure to run.
 sitl: $(BIN)/.installed $(MODEL)

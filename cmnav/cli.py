@@ -853,7 +853,7 @@ def build_parser() -> argparse.ArgumentParser:
         "written only if its max action error over >= 300 steps of the other half (GRU state carried) is <= 0.02, else "
         "refused with the numbers (exit 2, the fp32 model is kept).  `cmnav bench runtime` times the variants.",
     )
-    export.add_argument("--encoder", metavar="CKPT", help="CMWAE checkpoint directory (cmnav train cmwae), e.g. models/cmwae-pooled")
+    export.add_argument("--encoder", metavar="CKPT", help="CMWAE checkpoint directory (cmnav train cmwae), e.g. models/cmwae-stereo")
     export.add_argument("--policy", metavar="CKPT", help="policy checkpoint directory (cmnav train policy)")
     export.add_argument("-o", "--output", dest="model_out", metavar="MODEL.onnx", help="path of the ONNX file to write")
     export.add_argument("--recorded", metavar="LOG.mcap", nargs="+", action="extend",

@@ -33,7 +33,7 @@ from training.checkpoint import save_weights
 from training.policy.env import parity_frames
 
 pytestmark = pytest.mark.timeout(300)
-SHIPPED_ENCODER = Path(__file__).resolve().parents[2] / "models" / "cmwae-pooled"
+SHIPPED_ENCODER = Path(__file__).resolve().parents[2] / "models" / "cmwae-stereo"  # the default's
 SAPPHIRE_RAPIDS = frozenset({"avx2", "avx512f", "avx512_bf16", "amx_bf16", "amx_tile"})
 ZEN4 = frozenset({"avx2", "avx512f", "avx512_bf16"})
 ZEN2 = frozenset({"avx2", "fma"})

@@ -359,9 +359,7 @@ class NavEnv:
                              "squares: the env needs the encoder and its decoder")  # fmt: skip
         self.config = config
         self.device = torch.device(device)
-        self.encoder = None if encoder is None else encoder.to(self.device).eval()
-        for p in self.encoder.parameters() if self.encoder is not None else ():
-            p.requires_grad_(False)
+        self.encoder = None if encoder is None else encoder.to(self.device).eval().requires_grad_(False)
         self.decoder = None if decoder is None else decoder.to(self.device).eval().requires_grad_(False)
         self.with_teacher_obs = teacher_obs
         width, height = config.privileged_render_px

@@ -750,7 +750,7 @@ def build_parser() -> argparse.ArgumentParser:
             raise argparse.ArgumentTypeError(f"{text!r}: expected MIN-MAX in px, e.g. 1-50 or 100-100") from None
 
     eval_cmwae = eval_sub.add_parser("cmwae", help="Table I: MSE/SSIM at 0-50%% evaluation corruption on the held-out split",
-                                     description="Table I: MSE/SSIM at 0-50%% evaluation corruption on the held-out split; on a "
+                                     description="Table I: MSE/SSIM at 0-50% evaluation corruption on the held-out split; on a "
                                      "`cmnav dataset --depth stereo` dataset also with its stereo depth as the input, "
                                      "projector on and off apart.")  # fmt: skip
     eval_cmwae.add_argument("--checkpoint", required=True, help="checkpoint directory")
@@ -812,7 +812,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="a training recipe run stage by stage, resumable: the paper's (within --minutes) or --recipe's",
         description="Without --recipe, the paper's recipe for a GPU machine with only torch, onnx, onnxruntime and "
         "numpy: renders a dataset, trains the CMWAE (S2), the privileged teacher (PPO) and the student (DAgger) "
-        "on shares of the --minutes budget (35%%, 30%% and 25%%), evaluates Table I, the teacher's and the "
+        "on shares of the --minutes budget (35%, 30% and 25%), evaluates Table I, the teacher's and the "
         "student's Table II, exports model.onnx, and writes MODEL_CARD.md and pipeline.json in --out.  "
         "Checkpoints are fp16 shards <= 15 MiB.  With --recipe, the stages of a recipe file (cmnav commands, "
         "each training stage with its minutes), each a process logging to OUT/logs/STAGE.log; MODEL_CARD.md "

@@ -87,3 +87,10 @@ def test_the_check_finds_a_planted_repeated_default():
     _config_option(parser, "--episodes", "training.policy.evaluate:PolicyEvalConfig.episodes", type=int, help="episodes")
     parser.add_argument("--seed", type=int, default=0)  # PolicyEvalConfig.seed is 0 too
     assert repeated_defaults(parser) == ["planted --seed repeats training.policy.evaluate:PolicyEvalConfig.seed's default"]
+
+
+@pytest.mark.parametrize("path, parser", PARSERS, ids=[" ".join(path) or "cmnav" for path, _ in PARSERS])
+def test_help_prints_percent_signs_once(path, parser):
+    """argparse %-formats an option's help but prints a description as written: a `%%` meant for
+    the one shows doubled in the other."""
+    assert "%%" not in parser.format_help(), path

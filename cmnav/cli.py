@@ -188,7 +188,7 @@ def _cmd_train_cmwae(args: argparse.Namespace) -> int:
         init_from=args.init_from, anchor_from=args.anchor,
         **_given(args, "scheme", "modalities", "size", "batch_size", "lr", "mmd_weight", "seed", "device", "workers",
                  "checkpoint_every", "precision", "corrupted_loss_weight", "anchor_weight", "consistency_weight", "near_weight",
-                 "near_m", "pooled_weight", "val_images", "squares_share"),
+                 "near_m", "pooled_weight", "hidden_far_weight", "val_images", "squares_share"),
     )  # fmt: skip
     out = train_cmwae(config)
     print(f"checkpoint in {out}")
@@ -613,6 +613,9 @@ def build_parser() -> argparse.ArgumentParser:
     _config_option(cmwae, "--pooled-weight", "training.cmwae.train:CmwaeTrainConfig.pooled_weight", type=float,
                    help="weight of the teacher's-view term: the error of the nearest surface per cell of the teacher's "
                    "18 x 32 depth grid, near cells weighted by --near-weight (0: off)")  # fmt: skip
+    _config_option(cmwae, "--hidden-far-weight", "training.cmwae.train:CmwaeTrainConfig.hidden_far_weight", type=float,
+                   help="pessimism under hidden depth: extra weight of the pixels the degraded input lost (and of the "
+                   "teacher's-view cells holding one) where the reconstruction reads farther than the truth (0: off)")  # fmt: skip
     add_precision(cmwae)
     cmwae.set_defaults(func=_cmd_train_cmwae)
 

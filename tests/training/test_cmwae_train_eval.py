@@ -11,9 +11,9 @@ import pytest
 import torch
 
 from training.checkpoint import MAX_SHARD_BYTES, load_train_state, read_card, save_weights
-from training.cmwae.loss import TEACHER_GRID, cmwae_loss, near_surface_mask, nearest_per_cell, pooled_nearest_error
+from training.cmwae.loss import TEACHER_GRID, cmwae_loss, hidden_pixels, near_surface_mask, nearest_per_cell, pooled_nearest_error
 from training.cmwae.model import Cmwae, make_config
-from training.cmwae.train import CmwaeTrainConfig, learning_rate, load_cmwae
+from training.cmwae.train import CmwaeTrainConfig, _pixel_weights, learning_rate, load_cmwae
 from sim.degradation import SCHEMES, PatchScheme, corrupt_depth, corrupt_with_scheme, patch_masks
 from training.data.generate import DatasetSpec, generate_dataset
 from training.data.tartanair import GrayDepthDataset
@@ -269,6 +269,62 @@ def test_the_pooled_term_pulls_the_reconstruction_toward_the_teachers_view():
             recon = (recon - 5.0 * grad).detach().requires_grad_(True)
         errors[pooled_weight] = float(pooled_nearest_error(recon.detach(), target)[0])
     assert errors[0.0] > 0.9 * pooled_nearest_error(torch.full_like(target, 0.8), target)[0] and errors[30.0] < 0.01 * errors[0.0], errors
+
+
+def test_hidden_far_weighting_weighs_only_hidden_surfaces_read_too_far():
+    target = torch.full((1, 1, 224, 224), 0.8)
+    target[0, 0, :, 35] = target[0, 0, :, 120] = 0.1  # two poles at 1 m, in grid columns 5 and 17
+    target[0, 0, 0, :] = 0.0  # an invalid row: never hidden (the target has nothing there)
+    corrupted = target.clone()
+    corrupted[0, 0, :, 28:42] = 0.0  # a square hides the first pole (and its cells' far wall)
+    hidden = hidden_pixels(corrupted, target)
+    assert int(hidden[0, 0, 0].sum()) == 0 and bool(hidden[0, 0, 1:, 35].all()) and not bool(hidden[0, 0, :, 120].any())
+    both_missed = torch.full_like(target, 0.8)  # neither pole reconstructed: both read too far
+    plain = float(pooled_nearest_error(both_missed, target)[0])
+    tilted = float(pooled_nearest_error(both_missed, target, hidden=hidden, hidden_far_weight=9.0)[0])
+    # the 18 cells of 576 that hold the hidden pole weigh 10
+    assert plain == pytest.approx(36 * 0.7**2 / 576, rel=1e-5)
+    assert tilted == pytest.approx((36 + 18 * 9) * 0.7**2 / (576 + 18 * 9), rel=1e-5)
+    # read too near, the same hidden pole weighs as before: the term is pessimism, not accuracy
+    too_near = target.clone()
+    too_near[0, 0, :, 35] = 0.05
+    too_near[0, 0, :, 120] = 0.8
+    assert float(pooled_nearest_error(too_near, target, hidden=hidden, hidden_far_weight=9.0)[0]) == pytest.approx(
+        (18 * 0.05**2 + 18 * 0.7**2) / 576, rel=1e-5)
+    with pytest.raises(ValueError, match="hidden_far_weight=-1.0 must lie in"):
+        CmwaeTrainConfig(data_dir="d", out_dir="o", steps=1, hidden_far_weight=-1.0).validate()
+
+
+def test_the_hidden_far_term_tilts_the_guess_under_a_square_near():
+    # one guess for two hidden pixels of an image, one near and one far: the plain mean's optimum
+    # is their mean; with the term the guess moves to the 10 : 1 weighted mean
+    target = torch.tensor([0.1, 0.9]).view(1, 1, 1, 2)
+    hidden = torch.ones_like(target, dtype=torch.bool)
+    guesses = {}
+    for weight in (0.0, 9.0):
+        config = CmwaeTrainConfig(data_dir="d", out_dir="o", steps=1, hidden_far_weight=weight)
+        guess = torch.tensor(0.5, requires_grad=True)
+        for _ in range(400):
+            recon = guess.expand_as(target)
+            loss = cmwae_loss(recon, target, torch.randn(2, 3), 0.0, pixel_weights=_pixel_weights(config, recon, target, hidden))
+            (grad,) = torch.autograd.grad(loss["loss"], guess)
+            guess = (guess - 0.2 * grad).detach().requires_grad_(True)
+        guesses[weight] = float(guess.detach())
+    assert guesses[0.0] == pytest.approx(0.5, abs=1e-3)
+    assert guesses[9.0] == pytest.approx((0.9 + 0.1 * 10) / 11, abs=1e-2)
+
+
+def test_train_cmwae_with_the_hidden_far_term(dataset, tmp_path):
+    weights = {}
+    for hidden_far_weight in ("0", "9"):
+        out = tmp_path / f"hidden{hidden_far_weight}"
+        _cmnav(*TRAIN, "--data", str(dataset), "--scheme", "s2", "--out", str(out), "--steps", "3", "--seed", "1",
+               "--pooled-weight", "30", "--hidden-far-weight", hidden_far_weight, "--precision", "fp32", "--val-images", "4")
+        model, card = load_cmwae(out)
+        assert card["meta"]["train"]["hidden_far_weight"] == float(hidden_far_weight)
+        weights[hidden_far_weight] = model.state_dict()
+    # the same seed, squares and start: the term reached the gradient
+    assert any(not torch.allclose(weights["0"][k], weights["9"][k]) for k in weights["0"])
 
 
 def test_train_cmwae_with_the_pooled_term(dataset, tmp_path):

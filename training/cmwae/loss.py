@@ -68,15 +68,32 @@ def nearest_per_cell(depth: Tensor, grid: tuple[int, int] = TEACHER_GRID) -> Ten
     return -F.adaptive_max_pool2d(-far, grid)
 
 
+def hidden_pixels(corrupted: Tensor, target: Tensor) -> Tensor:
+    """The pixels the encoder's input lost: invalid in the degraded input, valid in the target."""
+    return (corrupted <= DEPTH_INVALID_VALUE) & (target > DEPTH_INVALID_VALUE)
+
+
+def hidden_too_far(recon: Tensor, target: Tensor, hidden: Tensor) -> Tensor:
+    """The hidden elements (pixels or cells) whose reconstruction reads farther than the truth: a
+    surface the input lost and the encoder placed beyond where it is, so a policy flies into it."""
+    return hidden & (recon.detach() > target)
+
+
 def pooled_nearest_error(recon: Tensor, target: Tensor, near_weight: float = 0.0, near_m: float = NEAR_SURFACE_M,
-                         grid: tuple[int, int] = TEACHER_GRID) -> Tensor:  # fmt: skip
+                         grid: tuple[int, int] = TEACHER_GRID, hidden: Tensor | None = None,
+                         hidden_far_weight: float = 0.0) -> Tensor:  # fmt: skip
     """[B] the reconstruction error as the teacher would see it: squared error of the nearest
     surface per grid cell, the reconstruction read only where the target is valid, cells whose true
-    nearest surface is nearer than ``near_m`` weighing 1 + ``near_weight``; a weighted mean per image."""
+    nearest surface is nearer than ``near_m`` weighing 1 + ``near_weight``, and, given the input's
+    ``hidden`` pixels, cells holding one whose nearest surface reads too far weighing
+    ``hidden_far_weight`` more; a weighted mean per image."""
     valid = target > DEPTH_INVALID_VALUE
     cells_true = nearest_per_cell(target, grid)
     cells_recon = nearest_per_cell(torch.where(valid, recon, torch.ones_like(recon)), grid)
     weights = 1.0 + near_weight * near_surface_mask(cells_true, near_m)
+    if hidden is not None and hidden_far_weight > 0.0:
+        cells_hidden = F.adaptive_max_pool2d(hidden.float(), grid) > 0.0
+        weights = weights + hidden_far_weight * hidden_too_far(cells_recon, cells_true, cells_hidden)
     squared = (cells_recon - cells_true) ** 2
     return (squared * weights).flatten(1).sum(dim=1) / weights.flatten(1).sum(dim=1)
 

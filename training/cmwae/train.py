@@ -24,7 +24,8 @@ from ..fastpath import PRECISIONS, FastPath, FrozenEncoder, choose_fast_path
 from ..progress import Progress
 from ..tensorboard import ScalarWriter
 from .curve import record_val_point
-from .loss import NEAR_SURFACE_M, check_near_weighting, cmwae_loss, near_surface_mask, pooled_nearest_error
+from .loss import (NEAR_SURFACE_M, check_near_weighting, cmwae_loss, hidden_pixels, hidden_too_far, near_surface_mask,
+                   pooled_nearest_error)
 from .model import MODALITIES, Cmwae, CmwaeConfig, make_config
 
 log = logging.getLogger(__name__)
@@ -88,6 +89,11 @@ class CmwaeTrainConfig:
     # teacher's 18 x 32 grid (loss.TEACHER_GRID, near cells weighted as above).  A pole a few pixels
     # wide is a few pixels of the full-frame mean but a whole cell of what the teacher flies on.
     pooled_weight: float = 0.0
+    # Pessimism under hidden depth: the pixels the degraded input lost (and, in the teacher's-view
+    # term, the cells holding one) whose reconstruction reads farther than the truth weigh
+    # hidden_far_weight more.  Under a 100 px square the mean-square optimum blends near and far
+    # guesses, and a surface read too far is what the policy flies into; this tilts the guess near.
+    hidden_far_weight: float = 0.0
     seed: int = 0
     device: str = "cpu"
     workers: int = 2
@@ -122,6 +128,8 @@ class CmwaeTrainConfig:
         check_near_weighting(self.near_weight, self.near_m)
         if not 0.0 <= self.pooled_weight <= 1000.0:
             raise ValueError(f"pooled_weight={self.pooled_weight} must lie in [0, 1000]")
+        if not 0.0 <= self.hidden_far_weight <= 1000.0:
+            raise ValueError(f"hidden_far_weight={self.hidden_far_weight} must lie in [0, 1000]")
         if self.consistency_weight > 0.0 and self.anchor_from is not None:
             raise ValueError("consistency_weight and anchor_from both pull the corrupted latent: anchoring toward the "
                              "anchor's clean latent, consistency toward this encoder's own; give one")  # fmt: skip
@@ -138,6 +146,15 @@ def learning_rate(config: CmwaeTrainConfig, step: int, total_steps: int) -> floa
         return config.lr
     progress = min(step / max(total_steps - 1, 1), 1.0)
     return config.lr_final + 0.5 * (config.lr - config.lr_final) * (1.0 + math.cos(math.pi * progress))
+
+
+def _pixel_weights(config: CmwaeTrainConfig, recon: torch.Tensor, depth: torch.Tensor, hidden: torch.Tensor) -> torch.Tensor | None:
+    """Each pixel's weight in its image's reconstruction error (None: the plain mean): near
+    surfaces weigh near_weight more, hidden pixels read too far hidden_far_weight more."""
+    if not config.near_weight and not config.hidden_far_weight:
+        return None
+    weights = 1.0 + config.near_weight * near_surface_mask(depth, config.near_m)
+    return weights + config.hidden_far_weight * hidden_too_far(recon, depth, hidden)
 
 
 def _corrupt(depth: torch.Tensor, scheme: str, generator: torch.Generator, stereo: torch.Tensor | None = None,
@@ -289,14 +306,16 @@ def _train(config: CmwaeTrainConfig, info: DistInfo, device: torch.device) -> Pa
             if step >= total_steps:
                 break
             corrupted, was_corrupted = _corrupt(depth, config.scheme, corruption_generator, *stereo, squares_share=config.squares_share)
+            hidden = hidden_pixels(corrupted, depth).to(device)
             gray, depth, corrupted = path.image(gray.to(device)), depth.to(device), path.image(corrupted.to(device))
             with path.autocast(device):
                 z, recon = ddp_model(gray, corrupted)
             weights = torch.where(was_corrupted, config.corrupted_loss_weight, 1.0).to(device)
-            pixel_weights = 1.0 + config.near_weight * near_surface_mask(depth, config.near_m) if config.near_weight else None
+            pixel_weights = _pixel_weights(config, recon.float(), depth, hidden)
             losses = cmwae_loss(recon.float(), depth, z.float(), config.mmd_weight, loss_generator, weights, pixel_weights)
             if config.pooled_weight > 0.0:
-                losses["pooled"] = pooled_nearest_error(recon.float(), depth, config.near_weight, config.near_m).mean()
+                losses["pooled"] = pooled_nearest_error(recon.float(), depth, config.near_weight, config.near_m,
+                                                        hidden=hidden, hidden_far_weight=config.hidden_far_weight).mean()  # fmt: skip
                 losses["loss"] = losses["loss"] + config.pooled_weight * losses["pooled"]
             if anchor is not None:
                 with torch.no_grad():

@@ -208,17 +208,17 @@ def _policy_train_config(args: argparse.Namespace, encoder_dir: str | None, corr
         curriculum=CurriculumConfig(**_given(args, "start_level", "max_level", window_episodes="curriculum_window")),
         resume=args.resume, keep_checkpoints=args.keep_checkpoints, init_from=args.init_from,
         max_wall_s=None if args.minutes is None else args.minutes * 60.0,
-        **_given(args, "device", "seed", "checkpoint_every", "precision", "vehicle", "end_at_goal", num_envs="envs",
-                 env_steps="steps"),
+        env_overrides=_given(args, "squares_episode_fraction"),
+        **_given(args, "device", "seed", "checkpoint_every", "precision", "vehicle", "end_at_goal", "init_log_std",
+                 "critic_warmup_iterations", "freeze_obs_norm", num_envs="envs", env_steps="steps"),
     )  # fmt: skip
 
 
 def _cmd_train_policy(args: argparse.Namespace) -> int:
     if args.teacher is not None:
         return _train_student(args)
-    dagger_only = [f"--{name.replace('_', '-')}" for name in ("field", "projector_off_episode_fraction", "squares_episode_fraction", "squares_teacher_view",
-                                                             "beta_start", "beta_decay_env_steps", "near_weight")
-                   if getattr(args, name) is not None and getattr(args, name) is not False]  # fmt: skip
+    dagger_only = _given_flags(args, "field", "projector_off_episode_fraction", "squares_teacher_view", "beta_start", "beta_decay_env_steps",
+                               "near_weight")  # fmt: skip
     if dagger_only:
         print(f"cmnav train policy: {', '.join(dagger_only)} train a student by DAgger: give --teacher TEACHER_DIR", file=sys.stderr)
         return 2
@@ -229,7 +229,16 @@ def _cmd_train_policy(args: argparse.Namespace) -> int:
     return 0
 
 
+def _given_flags(args: argparse.Namespace, *names: str) -> list[str]:
+    """The options among ``names`` given on the command line, as their flags."""
+    return [f"--{name.replace('_', '-')}" for name in names if getattr(args, name) is not None and getattr(args, name) is not False]
+
+
 def _train_student(args: argparse.Namespace) -> int:
+    if ppo_only := _given_flags(args, "init_log_std", "critic_warmup_iterations", "freeze_obs_norm"):
+        print(f"cmnav train policy: {', '.join(ppo_only)} fine-tune by PPO, which --teacher (DAgger) is not: drop --teacher",
+              file=sys.stderr)  # fmt: skip
+        return 2
     from training.policy.dagger import DaggerConfig, train_dagger
     from training.policy.network import POLICY_SIZES
 
@@ -696,10 +705,20 @@ def build_parser() -> argparse.ArgumentParser:
                    "first step, e.g. with --init-from a distilled student)")  # fmt: skip
     _config_option(policy, "--projector-off-episode-fraction", "training.policy.dagger:DaggerConfig.projector_off_episode_fraction", type=float,
                    help="DAgger: share of episodes whose depth is lost like a D455 without its projector")
-    _config_option(policy, "--squares-episode-fraction", "training.policy.dagger:DaggerConfig.squares_episode_fraction", type=float,
-                   help="DAgger: share of the other episodes (outside the field, with --corruption train) that keep one "
-                   "mask of 50-100 px squares to 20-50 %% for the whole episode instead of the per-step 1-30 px patches "
-                   "(the kind of loss of Table II's patches-100px)")  # fmt: skip
+    _config_option(policy, "--squares-episode-fraction", "training.policy.dagger:DaggerConfig.squares_episode_fraction",
+                   "training.policy.env:NavEnvConfig.squares_episode_fraction", type=float,
+                   help="share of the episodes (with --teacher, of those outside the field; with --corruption train) that "
+                   "keep one mask of 50-100 px squares to 20-50 %% for the whole episode instead of the per-step 1-30 px "
+                   "patches (the kind of loss of Table II's patches-100px)")  # fmt: skip
+    _config_option(policy, "--init-log-std", "training.policy.train:PolicyTrainConfig.init_log_std", type=float,
+                   help="PPO with --init-from: set the policy's log std of the action noise to this (a DAgger student "
+                   "keeps its untrained -0.5; the PPO teacher ends near -2.4), the noise PPO explores with")  # fmt: skip
+    _config_option(policy, "--critic-warmup-iterations", "training.policy.train:PolicyTrainConfig.critic_warmup_iterations", type=int,
+                   help="PPO: iterations at the start in which only the value head learns (the policy flies unchanged), so "
+                   "that a distilled student's untrained critic gives advantages before the policy moves")  # fmt: skip
+    _config_option(policy, "--freeze-obs-norm", "training.policy.train:PolicyTrainConfig.freeze_obs_norm", action="store_true",
+                   help="PPO: keep the observation normaliser's statistics as loaded (a fine-tune's new episodes do not "
+                   "shift the inputs under the policy)")  # fmt: skip
     _config_option(policy, "--squares-teacher-view", "training.policy.dagger:DaggerConfig.squares_teacher_view", choices=SQUARES_TEACHER_VIEWS,
                    help="DAgger: what the teacher sees under the squares of --squares-episode-fraction: the clean depth, or "
                    "the encoder's reconstruction from the student's gray + masked depth (what the student can know there)")  # fmt: skip
@@ -740,7 +759,8 @@ def build_parser() -> argparse.ArgumentParser:
     teacher.add_argument("--init-from", metavar="TEACHER_DIR", help="start from this teacher checkpoint")
     add_vehicle_option(teacher, "training.policy.train:PolicyTrainConfig.vehicle")
     add_end_at_goal_option(teacher, "training.policy.train:PolicyTrainConfig.end_at_goal")
-    teacher.set_defaults(func=_cmd_train_teacher, precision=None)
+    teacher.set_defaults(func=_cmd_train_teacher, precision=None, squares_episode_fraction=None, init_log_std=None,
+                         critic_warmup_iterations=None, freeze_obs_norm=None)  # `train policy`'s PPO fine-tune options
 
     evaluate = sub.add_parser("eval", help="evaluate a trained encoder (Table I) or policy (Table II)")
     eval_sub = evaluate.add_subparsers(dest="what", required=True, metavar="WHAT")

@@ -186,6 +186,42 @@ def test_init_from_restandardises_the_latent_on_the_new_encoder(encoders, tmp_pa
     torch.testing.assert_close(same.obs_norm.mean, start.obs_norm.mean)
 
 
+def test_ppo_fine_tune_warms_the_critic_up_first_with_the_noise_set_and_the_inputs_kept(encoders, tmp_path):
+    """A distilled student fine-tuned by PPO (here on the squares episodes): for
+    --critic-warmup-iterations only its value head learns, its action noise starts at
+    --init-log-std, and with --freeze-obs-norm its input statistics never move."""
+    source = tmp_path / "policy"
+    _cmnav(*TRAIN, "--encoder", str(encoders / "enc"), "--out", str(source), "--steps", "128")
+    tuned = tmp_path / "tuned"
+    fine_tune = [*TRAIN, "--encoder", str(encoders / "enc"), "--out", str(tuned), "--init-log-std", "-2",
+                 "--critic-warmup-iterations", "2", "--freeze-obs-norm", "--squares-episode-fraction", "0.5"]  # fmt: skip
+    fine_tune += ["--init-from", str(source)]
+    _cmnav(*fine_tune, "--steps", "256")  # 2 iterations of 8 envs x 16 steps: the warm-up
+    start, warmed = load_policy(source)[0].state_dict(), load_policy(tuned)[0].state_dict()
+    card = read_card(tuned, "policy")
+    assert card["meta"]["init_from"]["log_std_set_to"] == -2.0
+    assert card["meta"]["train"]["env_overrides"] == {"squares_episode_fraction": 0.5}
+    torch.testing.assert_close(warmed["log_std"], torch.full((3,), -2.0))
+    assert not torch.equal(warmed["value_head.weight"], start["value_head.weight"])
+    for name, tensor in start.items():
+        if not name.startswith("value_head") and name != "log_std":
+            assert torch.equal(warmed[name], tensor), name  # the policy and its normaliser as distilled
+
+    _cmnav(*fine_tune, "--steps", "512", "--resume")  # the same command resumed: 2 iterations of PPO after the warm-up
+    tuned_state = load_policy(tuned)[0].state_dict()
+    assert not torch.equal(tuned_state["action_head.weight"], start["action_head.weight"])
+    for name in ("obs_norm.mean", "obs_norm.var", "obs_norm.count"):
+        assert torch.equal(tuned_state[name], start[name]), name
+
+    # What makes no sense is refused, naming the fix.
+    proc = subprocess.run([sys.executable, "-m", "cmnav", *TRAIN, "--encoder", str(encoders / "enc"), "--out", str(tmp_path / "x"),
+                           "--steps", "128", "--init-log-std", "-2"], capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert proc.returncode == 2 and "give --init-from POLICY_DIR" in proc.stderr and "Traceback" not in proc.stderr
+    proc = subprocess.run([sys.executable, "-m", "cmnav", *TRAIN, "--encoder", str(encoders / "enc"), "--out", str(tmp_path / "x"),
+                           "--teacher", str(source), "--critic-warmup-iterations", "2"], capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert proc.returncode == 2 and "--critic-warmup-iterations fine-tune by PPO" in proc.stderr and "drop --teacher" in proc.stderr
+
+
 def test_reached_is_the_runtimes_rule_any_entry_within_a_metre_before_the_end():
     goal = [5.0, 0.0, 2.0]
     through = [[0.0, 0.0, 2.0], [4.2, 0.0, 2.0], [5.0, 0.9, 2.0], [6.5, 1.5, 2.0]]  # passed within 0.9 m, ended 2.1 m off

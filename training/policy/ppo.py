@@ -114,14 +114,18 @@ def ppo_update(
     config: PpoConfig,
     generator: torch.Generator,
     reduce_grads=None,
+    critic_only: bool = False,
 ) -> dict[str, float]:
     """Epochs x minibatches of clipped PPO on one rollout; returns mean losses.  ``reduce_grads``
-    (multi-GPU) averages gradients across processes before each optimizer step."""
+    (multi-GPU) averages gradients across processes before each optimizer step.  ``critic_only``:
+    the loss is the value loss alone (a fine-tune's critic warm-up: ``optimizer`` then holds the
+    value head only, so the policy does not move while its critic learns its returns)."""
     advantages, returns = gae(rollout, config.gamma, config.gae_lambda)
     advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
     num_envs = rollout.obs.shape[1]
     stats = {"policy_loss": 0.0, "value_loss": 0.0, "entropy": 0.0, "approx_kl": 0.0, "clip_fraction": 0.0}
     updates = 0
+    trained = [p for group in optimizer.param_groups for p in group["params"]]  # the norm clipped is of what steps
     for _ in range(config.epochs):
         order = torch.randperm(num_envs, generator=generator).to(rollout.obs.device)
         for idx in order.chunk(config.minibatches):
@@ -136,12 +140,14 @@ def ppo_update(
             ret = returns[:, idx]
             value_loss = torch.max((value - ret).square(), (value_clipped - ret).square()).mean()
             entropy = dist.entropy().sum(-1).mean()
-            loss = policy_loss + config.value_coef * value_loss - config.entropy_coef * entropy
-            optimizer.zero_grad(set_to_none=True)
+            loss = config.value_coef * value_loss
+            if not critic_only:
+                loss = loss + policy_loss - config.entropy_coef * entropy
+            model.zero_grad(set_to_none=True)
             loss.backward()
             if reduce_grads is not None:
                 reduce_grads()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), config.max_grad_norm)
+            torch.nn.utils.clip_grad_norm_(trained, config.max_grad_norm)
             optimizer.step()
             with torch.no_grad():
                 log_ratio = log_prob - rollout.log_probs[:, idx]

@@ -43,6 +43,14 @@ class PolicyTrainConfig:
     keep_checkpoints: bool = False  # every checkpoint's weights also kept in OUT/checkpoints/step-N (training.checkpoint.keep_checkpoint)
     resume: bool = False
     init_from: str | None = None  # start from this policy checkpoint (fine-tuning, e.g. after retraining the encoder)
+    # Fine-tuning a distilled student by PPO (DAgger trains neither its critic nor its action noise):
+    # the --init-from policy's log std of the action noise set to this (None: kept), ...
+    init_log_std: float | None = None
+    # ... its critic warmed up for this many iterations (the value head alone learns; the policy
+    # flies unchanged) before PPO moves the policy, ...
+    critic_warmup_iterations: int = 0
+    # ... and its observation normaliser kept as it is (the new episodes' inputs do not shift it).
+    freeze_obs_norm: bool = False
     max_wall_s: float | None = None  # stop (with a checkpoint) after this long
     precision: str = "auto"  # the frozen encoder's fast path (training.fastpath)
     env_overrides: dict = field(default_factory=dict)  # other NavEnvConfig fields
@@ -64,6 +72,11 @@ class PolicyTrainConfig:
             raise ValueError(f"env_steps={self.env_steps} must be >= 1")
         if self.checkpoint_every < 1:
             raise ValueError(f"checkpoint_every={self.checkpoint_every} must be >= 1")
+        if self.critic_warmup_iterations < 0:
+            raise ValueError(f"critic_warmup_iterations={self.critic_warmup_iterations} must be >= 0")
+        if self.init_log_std is not None and self.init_from is None and not self.resume:
+            raise ValueError("init_log_std sets the action noise of the --init-from policy: give --init-from POLICY_DIR "
+                             "(a run from scratch starts at PolicyConfig.init_log_std)")  # fmt: skip
         self.env_config().validate()
         self.policy.validate()
         self.ppo.validate(self.num_envs)
@@ -101,7 +114,10 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
     role = policy_role(encoder_fingerprint)
     env = NavEnv(config.env_config(), encoder, device, seed=config.seed * 1000 + info.rank)
     model = ActorCritic(policy_config).to(device)
+    if config.freeze_obs_norm:
+        model.obs_norm.max_count = 0  # RunningNorm.update stops at max_count: the loaded statistics stay
     optimizer = torch.optim.Adam(model.parameters(), lr=config.ppo.lr)
+    critic_optimizer = torch.optim.Adam(model.value_head.parameters(), lr=config.ppo.lr)
     normalizer = ReturnNormalizer(config.num_envs, config.ppo.gamma, device)
     update_generator = torch.Generator().manual_seed(config.seed * 1000 + info.rank + 1)
     iteration, env_steps = 0, 0
@@ -110,7 +126,9 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
         check_resumed_task(state, out, config.encoder_dir, encoder_fingerprint, config.vehicle, config.end_at_goal)
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
-        for group in optimizer.param_groups:
+        if "critic_optimizer" in state:  # written since the critic warm-up (critic_warmup_iterations)
+            critic_optimizer.load_state_dict(state["critic_optimizer"])
+        for group in optimizer.param_groups + critic_optimizer.param_groups:
             group["lr"] = config.ppo.lr  # --lr also applies to a resumed run (the optimizer state carries the old one)
         normalizer.load_state_dict(state["return_normalizer"])
         env.curriculum.load_state_dict(state["curriculum"])
@@ -125,6 +143,10 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
         if config.resume:
             log.warning("--resume: no training state in %s, starting from scratch", out)
         init_meta = None if config.init_from is None else init_from_policy(model, config.init_from, encoder_fingerprint, env)
+        if config.init_log_std is not None:
+            with torch.no_grad():
+                model.log_std.fill_(config.init_log_std)
+            init_meta["log_std_set_to"] = config.init_log_std
     if info.enabled:  # every process starts from rank 0's weights
         for tensor in list(model.parameters()) + list(model.buffers()):
             dist.broadcast(tensor.data, src=0)
@@ -155,7 +177,8 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
         if config.keep_checkpoints:
             keep_checkpoint(out)
         save_train_state(out, {
-            "model": model.state_dict(), "optimizer": optimizer.state_dict(), "iteration": iteration,
+            "model": model.state_dict(), "optimizer": optimizer.state_dict(), "critic_optimizer": critic_optimizer.state_dict(),
+            "iteration": iteration,
             "env_steps": env_steps, "return_normalizer": normalizer.state_dict(),
             "curriculum": env.curriculum.state_dict(), "env_rng": env.generator.get_state(),
             "update_rng": update_generator.get_state(), "encoder_fingerprint": encoder_fingerprint,
@@ -173,7 +196,9 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
         rollout, hidden, starts, obs, episode_stats = collect_rollout(model, env, obs, hidden, starts, normalizer, config.ppo)
         t_collect = time.monotonic() - t_iter
         model.train()
-        losses = ppo_update(model, optimizer, rollout, config.ppo, update_generator, reduce_grads)
+        warming_up = iteration < config.critic_warmup_iterations
+        losses = ppo_update(model, critic_optimizer if warming_up else optimizer, rollout, config.ppo, update_generator,
+                            reduce_grads, critic_only=warming_up)  # fmt: skip
         iteration += 1
         env_steps += steps_per_iteration
         elapsed = time.monotonic() - t_iter

@@ -218,6 +218,9 @@ def test_ppo_fine_tune_warms_the_critic_up_first_with_the_noise_set_and_the_inpu
                            "--steps", "128", "--init-log-std", "-2"], capture_output=True, text=True, timeout=120)  # fmt: skip
     assert proc.returncode == 2 and "give --init-from POLICY_DIR" in proc.stderr and "Traceback" not in proc.stderr
     proc = subprocess.run([sys.executable, "-m", "cmnav", *TRAIN, "--encoder", str(encoders / "enc"), "--out", str(tmp_path / "x"),
+                           "--steps", "128", "--init-log-std", "-2", "--resume"], capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert proc.returncode == 2 and "holds no training state to resume" in proc.stderr and "Traceback" not in proc.stderr
+    proc = subprocess.run([sys.executable, "-m", "cmnav", *TRAIN, "--encoder", str(encoders / "enc"), "--out", str(tmp_path / "x"),
                            "--teacher", str(source), "--critic-warmup-iterations", "2"], capture_output=True, text=True, timeout=120)  # fmt: skip
     assert proc.returncode == 2 and "--critic-warmup-iterations fine-tune by PPO" in proc.stderr and "drop --teacher" in proc.stderr
 

@@ -144,6 +144,8 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
             log.warning("--resume: no training state in %s, starting from scratch", out)
         init_meta = None if config.init_from is None else init_from_policy(model, config.init_from, encoder_fingerprint, env)
         if config.init_log_std is not None:
+            if init_meta is None:  # --resume found no state to resume, and nothing to start from was given
+                raise ValueError(f"--init-log-std: {out} holds no training state to resume; give --init-from POLICY_DIR")
             with torch.no_grad():
                 model.log_std.fill_(config.init_log_std)
             init_meta["log_std_set_to"] = config.init_log_std

@@ -109,9 +109,9 @@ def test_the_squares_teacher_views_are_the_envs():
 
 def test_dagger_options_without_a_teacher_are_refused_not_ignored(tmp_path):
     out = tmp_path / "policy"
-    proc = _cmnav("train", "policy", "--encoder", "e", "--out", str(out), "--squares-episode-fraction", "0.3", "--beta-start", "0")
+    proc = _cmnav("train", "policy", "--encoder", "e", "--out", str(out), "--projector-off-episode-fraction", "0.3", "--beta-start", "0")
     assert proc.returncode == 2 and proc.stderr.strip() == (
-        "cmnav train policy: --squares-episode-fraction, --beta-start train a student by DAgger: give --teacher TEACHER_DIR"), proc.stderr
+        "cmnav train policy: --projector-off-episode-fraction, --beta-start train a student by DAgger: give --teacher TEACHER_DIR"), proc.stderr
     assert not out.exists()
 
 

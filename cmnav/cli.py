@@ -230,8 +230,8 @@ def _cmd_train_policy(args: argparse.Namespace) -> int:
 
 
 def _given_flags(args: argparse.Namespace, *names: str) -> list[str]:
-    """The options among ``names`` given on the command line, as their flags."""
-    return [f"--{name.replace('_', '-')}" for name in names if getattr(args, name) is not None and getattr(args, name) is not False]
+    """The options among ``names`` given on the command line (:func:`_given`), as their flags."""
+    return [f"--{name.replace('_', '-')}" for name in _given(args, *names)]
 
 
 def _train_student(args: argparse.Namespace) -> int:

@@ -193,9 +193,8 @@ def test_ppo_fine_tune_warms_the_critic_up_first_with_the_noise_set_and_the_inpu
     source = tmp_path / "policy"
     _cmnav(*TRAIN, "--encoder", str(encoders / "enc"), "--out", str(source), "--steps", "128")
     tuned = tmp_path / "tuned"
-    fine_tune = [*TRAIN, "--encoder", str(encoders / "enc"), "--out", str(tuned), "--init-log-std", "-2",
+    fine_tune = [*TRAIN, "--encoder", str(encoders / "enc"), "--out", str(tuned), "--init-from", str(source), "--init-log-std", "-2",
                  "--critic-warmup-iterations", "2", "--freeze-obs-norm", "--squares-episode-fraction", "0.5"]  # fmt: skip
-    fine_tune += ["--init-from", str(source)]
     _cmnav(*fine_tune, "--steps", "256")  # 2 iterations of 8 envs x 16 steps: the warm-up
     start, warmed = load_policy(source)[0].state_dict(), load_policy(tuned)[0].state_dict()
     card = read_card(tuned, "policy")

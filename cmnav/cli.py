@@ -204,7 +204,7 @@ def _policy_train_config(args: argparse.Namespace, encoder_dir: str | None, corr
     return PolicyTrainConfig(
         encoder_dir=encoder_dir, out_dir=args.out, policy=POLICY_SIZES[args.size],
         **({} if corruption is None else {"corruption": corruption}),
-        ppo=PpoConfig(**_given(args, "minibatches", "lr", rollout_steps="rollout")),
+        ppo=PpoConfig(**_given(args, "minibatches", "lr", "target_kl", rollout_steps="rollout")),
         curriculum=CurriculumConfig(**_given(args, "start_level", "max_level", window_episodes="curriculum_window")),
         resume=args.resume, keep_checkpoints=args.keep_checkpoints, init_from=args.init_from,
         max_wall_s=None if args.minutes is None else args.minutes * 60.0,
@@ -235,7 +235,7 @@ def _given_flags(args: argparse.Namespace, *names: str) -> list[str]:
 
 
 def _train_student(args: argparse.Namespace) -> int:
-    if ppo_only := _given_flags(args, "init_log_std", "critic_warmup_iterations", "freeze_obs_norm"):
+    if ppo_only := _given_flags(args, "init_log_std", "critic_warmup_iterations", "freeze_obs_norm", "target_kl"):
         print(f"cmnav train policy: {', '.join(ppo_only)} fine-tune by PPO, which --teacher (DAgger) is not: drop --teacher",
               file=sys.stderr)  # fmt: skip
         return 2
@@ -663,6 +663,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="PPO minibatches per epoch, split over envs")  # fmt: skip
         _config_option(command, "--lr", "training.policy.ppo:PpoConfig.lr", *[f"{c}.lr" for c in dagger], type=float,
                        help="learning rate, of PPO (of the student's imitation loss with --teacher); also applied on --resume")  # fmt: skip
+        _config_option(command, "--target-kl", "training.policy.ppo:PpoConfig.target_kl", type=float,
+                       help="PPO: end an update's epochs at the first minibatch whose approximate KL from the rollout's policy "
+                       "passes 1.5x this (none: all epochs run); small steps for a policy with little action noise")  # fmt: skip
         _config_option(command, "--start-level", "training.policy.env:CurriculumConfig.start_level", type=int, help="curriculum start level (obstacles)")
         _config_option(command, "--max-level", "training.policy.env:CurriculumConfig.max_level", *[f"{c}.max_level" for c in dagger], type=int,
                        help="curriculum cap")  # fmt: skip

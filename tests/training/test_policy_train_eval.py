@@ -2,6 +2,9 @@
 a tiny env with a tiny encoder."""
 
 import json
+import os
+import re
+import socket
 import subprocess
 import sys
 from dataclasses import asdict
@@ -14,7 +17,7 @@ from training.checkpoint import checkpoint_fingerprint, load_train_state, read_c
 from training.cmwae.model import Cmwae, make_config
 from training.policy.evaluate import reached_goal
 from training.policy.network import POLICY_SIZES, ActorCritic, RunningNorm, load_policy
-from training.policy.ppo import Rollout, gae
+from training.policy.ppo import PpoConfig, Rollout, gae, ppo_update
 from training.policy.train import init_from_policy
 
 pytestmark = pytest.mark.timeout(300)
@@ -54,6 +57,67 @@ def test_gae_matches_a_hand_computation():
     expected = torch.tensor([[d0 + gamma * lam * d1], [d1], [d2]])
     torch.testing.assert_close(adv, expected)
     torch.testing.assert_close(ret, expected + values)
+
+
+def test_target_kl_ends_the_update_at_the_first_minibatch_past_it():
+    """With little action noise (a fine-tuned student's std 0.1) a large step moves the policy far
+    from the rollout's; --target-kl stops the epochs where a minibatch's KL passes 1.5x it."""
+    torch.manual_seed(0)
+    model = ActorCritic(POLICY_SIZES["tiny"])
+    model.obs_norm.update(torch.randn(100, 79))
+    with torch.no_grad():
+        model.log_std.fill_(-2.3)
+    steps, n = 8, 8
+    obs, hidden0 = torch.randn(steps, n, 79), torch.zeros(n, model.hidden_size)
+    starts = torch.zeros(steps, n, dtype=torch.bool)
+    starts[0] = True
+    with torch.no_grad():
+        mean, values = model.unroll(obs, hidden0, starts)
+        dist = torch.distributions.Normal(mean, model.log_std.exp())
+        actions = dist.sample()
+        rollout = Rollout(obs, starts, actions, dist.log_prob(actions).sum(-1), values, torch.randn(steps, n),
+                          torch.zeros(steps, n, dtype=torch.bool), hidden0, torch.zeros(n))  # fmt: skip
+
+    def update(target_kl, reduce_mean=None):
+        tuned = ActorCritic(POLICY_SIZES["tiny"])
+        tuned.load_state_dict(model.state_dict())
+        config = PpoConfig(epochs=4, minibatches=4, lr=1e-3, target_kl=target_kl)
+        stats = ppo_update(tuned, torch.optim.Adam(tuned.parameters(), lr=config.lr), rollout, config, torch.Generator().manual_seed(0),
+                           reduce_mean=reduce_mean)  # fmt: skip
+        with torch.no_grad():
+            moved = torch.distributions.Normal(tuned.unroll(obs, hidden0, starts)[0], dist.scale)
+            return stats, float(torch.distributions.kl_divergence(dist, moved).sum(-1).mean())
+
+    free, free_kl = update(None)
+    capped, capped_kl = update(1e-3)
+    assert free["updates"] == 16
+    assert 1 <= capped["updates"] < 16
+    assert capped_kl < free_kl / 3
+    # Under torchrun the stop follows the processes' mean KL (reduce_mean), not this process's own.
+    assert update(1e-3, reduce_mean=lambda kl: kl * 0)[0]["updates"] == 16
+    assert update(1e-3, reduce_mean=lambda kl: kl + 1)[0]["updates"] == 0
+    with pytest.raises(ValueError, match="target_kl"):
+        PpoConfig(target_kl=0.0).validate(8)
+
+
+def test_target_kl_stops_every_torchrun_process_at_the_same_minibatch(tmp_path):
+    """Under torchrun each process has its own rollout, so its own KL: the stop is decided on their
+    mean (the unit test above shows the decision follows it), so every process takes the same steps
+    and they end with the same weights."""
+    with socket.socket() as sock:  # a free loopback port for the rendezvous
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    out = tmp_path / "teacher"
+    proc = subprocess.run(
+        [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--master_addr=127.0.0.1",
+         f"--master_port={port}", "-m", "cmnav", "train", "teacher", "--size", "tiny", "--envs", "8", "--rollout", "16",
+         "--minibatches", "4", "--lr", "1e-2", "--target-kl", "1e-4", "--steps", "1024", "--out", str(out)],
+        capture_output=True, text=True, timeout=280, env=dict(os.environ, GLOO_SOCKET_IFNAME="lo"),
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    digests = re.findall(r"rank (\d) of 2: final weights sha256 (\w+)", proc.stderr)
+    assert sorted(rank for rank, _ in digests) == ["0", "1"] and len({d for _, d in digests}) == 1, digests
+    assert read_card(out, "policy")["meta"]["train"]["ppo"]["target_kl"] == 1e-4
 
 
 def test_running_norm_equals_the_statistics_of_all_batches():
@@ -194,12 +258,13 @@ def test_ppo_fine_tune_warms_the_critic_up_first_with_the_noise_set_and_the_inpu
     _cmnav(*TRAIN, "--encoder", str(encoders / "enc"), "--out", str(source), "--steps", "128")
     tuned = tmp_path / "tuned"
     fine_tune = [*TRAIN, "--encoder", str(encoders / "enc"), "--out", str(tuned), "--init-from", str(source), "--init-log-std", "-2",
-                 "--critic-warmup-iterations", "2", "--freeze-obs-norm", "--squares-episode-fraction", "0.5"]  # fmt: skip
+                 "--critic-warmup-iterations", "2", "--freeze-obs-norm", "--squares-episode-fraction", "0.5", "--target-kl", "0.02"]  # fmt: skip
     _cmnav(*fine_tune, "--steps", "256")  # 2 iterations of 8 envs x 16 steps: the warm-up
     start, warmed = load_policy(source)[0].state_dict(), load_policy(tuned)[0].state_dict()
     card = read_card(tuned, "policy")
     assert card["meta"]["init_from"]["log_std_set_to"] == -2.0
     assert card["meta"]["train"]["env_overrides"] == {"squares_episode_fraction": 0.5}
+    assert card["meta"]["train"]["ppo"]["target_kl"] == 0.02
     torch.testing.assert_close(warmed["log_std"], torch.full((3,), -2.0))
     assert not torch.equal(warmed["value_head.weight"], start["value_head.weight"])
     for name, tensor in start.items():
@@ -220,8 +285,9 @@ def test_ppo_fine_tune_warms_the_critic_up_first_with_the_noise_set_and_the_inpu
                            "--steps", "128", "--init-log-std", "-2", "--resume"], capture_output=True, text=True, timeout=120)  # fmt: skip
     assert proc.returncode == 2 and "holds no training state to resume" in proc.stderr and "Traceback" not in proc.stderr
     proc = subprocess.run([sys.executable, "-m", "cmnav", *TRAIN, "--encoder", str(encoders / "enc"), "--out", str(tmp_path / "x"),
-                           "--teacher", str(source), "--critic-warmup-iterations", "2"], capture_output=True, text=True, timeout=120)  # fmt: skip
-    assert proc.returncode == 2 and "--critic-warmup-iterations fine-tune by PPO" in proc.stderr and "drop --teacher" in proc.stderr
+                           "--teacher", str(source), "--critic-warmup-iterations", "2", "--target-kl", "0.02"], capture_output=True,
+                          text=True, timeout=120)  # fmt: skip
+    assert proc.returncode == 2 and "--critic-warmup-iterations, --target-kl fine-tune by PPO" in proc.stderr and "drop --teacher" in proc.stderr
 
 
 def test_reached_is_the_runtimes_rule_any_entry_within_a_metre_before_the_end():

@@ -39,10 +39,16 @@ class PpoConfig:
     reward_scale: float = 0.1
     normalize_returns: bool = True
     max_grad_norm: float = 1.0
+    # Stop an update's epochs early once a minibatch's approximate KL from the rollout's policy passes
+    # 1.5x this (Stable-Baselines3's target_kl), before that minibatch steps; None: every epoch runs.
+    # With a small action noise (a fine-tuned student's std 0.1), a small move of the mean is a large KL.
+    target_kl: float | None = None
 
     def validate(self, num_envs: int) -> None:
         if self.rollout_steps < 1 or self.epochs < 1 or self.minibatches < 1:
             raise ValueError("rollout_steps, epochs and minibatches must be >= 1")
+        if self.target_kl is not None and not self.target_kl > 0:
+            raise ValueError(f"target_kl={self.target_kl} must be > 0 (or None: no early stop)")
         if self.minibatches > num_envs:
             raise ValueError(f"minibatches={self.minibatches} cannot exceed the number of envs ({num_envs})")
 
@@ -115,18 +121,25 @@ def ppo_update(
     generator: torch.Generator,
     reduce_grads=None,
     critic_only: bool = False,
+    reduce_mean=None,
 ) -> dict[str, float]:
     """Epochs x minibatches of clipped PPO on one rollout; returns mean losses.  ``reduce_grads``
-    (multi-GPU) averages gradients across processes before each optimizer step.  ``critic_only``:
+    (multi-GPU) averages gradients across processes before each optimizer step, ``reduce_mean`` a
+    tensor (so that every process stops at the same minibatch).  ``critic_only``:
     the loss is the value loss alone (a fine-tune's critic warm-up: ``optimizer`` then holds the
-    value head only, so the policy does not move while its critic learns its returns)."""
+    value head only, so the policy does not move while its critic learns its returns).  With
+    ``config.target_kl`` the epochs end at the first minibatch whose KL passes 1.5x it (that
+    minibatch does not step); ``updates`` in the result counts the optimizer steps taken."""
     advantages, returns = gae(rollout, config.gamma, config.gae_lambda)
     advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
     num_envs = rollout.obs.shape[1]
     stats = {"policy_loss": 0.0, "value_loss": 0.0, "entropy": 0.0, "approx_kl": 0.0, "clip_fraction": 0.0}
-    updates = 0
+    evaluated, updates = 0, 0
     trained = [p for group in optimizer.param_groups for p in group["params"]]  # the norm clipped is of what steps
+    kl_limit = None if config.target_kl is None or critic_only else 1.5 * config.target_kl
     for _ in range(config.epochs):
+        if evaluated > updates:  # the KL limit was passed
+            break
         order = torch.randperm(num_envs, generator=generator).to(rollout.obs.device)
         for idx in order.chunk(config.minibatches):
             mean, value = model.unroll(rollout.obs[:, idx], rollout.hidden0[idx], rollout.starts[:, idx])
@@ -140,6 +153,19 @@ def ppo_update(
             ret = returns[:, idx]
             value_loss = torch.max((value - ret).square(), (value_clipped - ret).square()).mean()
             entropy = dist.entropy().sum(-1).mean()
+            with torch.no_grad():  # of the policy before this minibatch's step
+                log_ratio = log_prob - rollout.log_probs[:, idx]
+                approx_kl = ((ratio - 1) - log_ratio).mean()
+                stats["approx_kl"] += float(approx_kl)
+                stats["clip_fraction"] += float(((ratio - 1).abs() > config.clip).float().mean())
+            stats["policy_loss"] += float(policy_loss.detach())
+            stats["value_loss"] += float(value_loss.detach())
+            stats["entropy"] += float(entropy.detach())
+            evaluated += 1
+            if reduce_mean is not None and kl_limit is not None:
+                approx_kl = reduce_mean(approx_kl)
+            if kl_limit is not None and float(approx_kl) > kl_limit:
+                break
             loss = config.value_coef * value_loss
             if not critic_only:
                 loss = loss + policy_loss - config.entropy_coef * entropy
@@ -149,12 +175,5 @@ def ppo_update(
                 reduce_grads()
             torch.nn.utils.clip_grad_norm_(trained, config.max_grad_norm)
             optimizer.step()
-            with torch.no_grad():
-                log_ratio = log_prob - rollout.log_probs[:, idx]
-                stats["approx_kl"] += float(((ratio - 1) - log_ratio).mean())
-                stats["clip_fraction"] += float(((ratio - 1).abs() > config.clip).float().mean())
-            stats["policy_loss"] += float(policy_loss.detach())
-            stats["value_loss"] += float(value_loss.detach())
-            stats["entropy"] += float(entropy.detach())
             updates += 1
-    return {k: v / updates for k, v in stats.items()}
+    return {k: v / evaluated for k, v in stats.items()} | {"updates": float(updates)}

@@ -200,7 +200,8 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
         model.train()
         warming_up = iteration < config.critic_warmup_iterations
         losses = ppo_update(model, critic_optimizer if warming_up else optimizer, rollout, config.ppo, update_generator,
-                            reduce_grads, critic_only=warming_up)  # fmt: skip
+                            reduce_grads, critic_only=warming_up,
+                            reduce_mean=(lambda value: all_reduce_mean(value, info)) if info.enabled else None)  # fmt: skip
         iteration += 1
         env_steps += steps_per_iteration
         elapsed = time.monotonic() - t_iter

@@ -3,7 +3,6 @@
 import dataclasses
 import json
 import os
-import socket
 import subprocess
 import sys
 
@@ -17,6 +16,7 @@ from training.cmwae.train import CmwaeTrainConfig, _pixel_weights, learning_rate
 from sim.degradation import SCHEMES, PatchScheme, corrupt_depth, corrupt_with_scheme, patch_masks
 from training.data.generate import DatasetSpec, generate_dataset
 from training.data.tartanair import GrayDepthDataset
+from tests.training.test_fastpath import torchrun_digests
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -402,13 +402,6 @@ def test_fp16_shards_roundtrip(tmp_path):
 
 def test_multi_process_torchrun_on_cpu(dataset, tmp_path):
     out = tmp_path / "ddp"
-    with socket.socket() as sock:  # a free loopback port for the rendezvous
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
-    proc = subprocess.run(
-        [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--master_addr=127.0.0.1",
-         f"--master_port={port}", "-m", "cmnav", *TRAIN, "--data", str(dataset), "--out", str(out), "--steps", "2"],
-        capture_output=True, text=True, timeout=280, env=dict(os.environ, GLOO_SOCKET_IFNAME="lo"),
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    digests = torchrun_digests(*TRAIN, "--data", str(dataset), "--out", str(out), "--steps", "2")
+    assert digests[0] == digests[1]
     assert read_card(out, "cmwae")["meta"]["world_size"] == 2

@@ -160,7 +160,8 @@ def _free_port() -> int:
         return sock.getsockname()[1]
 
 
-def _torchrun(*args: str) -> list[str]:
+def torchrun_digests(*args: str) -> list[str]:
+    """`cmnav ARGS` in two gloo processes on loopback; each rank's final weights digest."""
     proc = subprocess.run(
         [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--master_addr=127.0.0.1",
          f"--master_port={_free_port()}", "-m", "cmnav", *args],
@@ -173,10 +174,10 @@ def _torchrun(*args: str) -> list[str]:
 
 
 def test_two_gloo_processes_end_with_identical_weights(dataset, tmp_path):
-    cmwae = _torchrun("train", "cmwae", "--size", "tiny", "--batch-size", "4", "--workers", "0", "--data", str(dataset),
+    cmwae = torchrun_digests("train", "cmwae", "--size", "tiny", "--batch-size", "4", "--workers", "0", "--data", str(dataset),
                       "--out", str(tmp_path / "cmwae"), "--steps", "2", "--precision", "bf16")  # fmt: skip
     assert cmwae[0] == cmwae[1]
-    policy = _torchrun("train", "policy", "--size", "tiny", "--envs", "4", "--rollout", "8", "--minibatches", "2",
+    policy = torchrun_digests("train", "policy", "--size", "tiny", "--envs", "4", "--rollout", "8", "--minibatches", "2",
                        "--steps", "128", "--encoder", str(tmp_path / "cmwae"), "--out", str(tmp_path / "policy"),
                        "--precision", "fp32")  # fmt: skip (a 2-step tiny encoder's latent is too flat for bf16's bound)
     assert policy[0] == policy[1]

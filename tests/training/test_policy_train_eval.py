@@ -2,9 +2,6 @@
 a tiny env with a tiny encoder."""
 
 import json
-import os
-import re
-import socket
 import subprocess
 import sys
 from dataclasses import asdict
@@ -19,6 +16,7 @@ from training.policy.evaluate import reached_goal
 from training.policy.network import POLICY_SIZES, ActorCritic, RunningNorm, load_policy
 from training.policy.ppo import PpoConfig, Rollout, gae, ppo_update
 from training.policy.train import init_from_policy
+from tests.training.test_fastpath import torchrun_digests
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -104,19 +102,10 @@ def test_target_kl_stops_every_torchrun_process_at_the_same_minibatch(tmp_path):
     """Under torchrun each process has its own rollout, so its own KL: the stop is decided on their
     mean (the unit test above shows the decision follows it), so every process takes the same steps
     and they end with the same weights."""
-    with socket.socket() as sock:  # a free loopback port for the rendezvous
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
     out = tmp_path / "teacher"
-    proc = subprocess.run(
-        [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--master_addr=127.0.0.1",
-         f"--master_port={port}", "-m", "cmnav", "train", "teacher", "--size", "tiny", "--envs", "8", "--rollout", "16",
-         "--minibatches", "4", "--lr", "1e-2", "--target-kl", "1e-4", "--steps", "1024", "--out", str(out)],
-        capture_output=True, text=True, timeout=280, env=dict(os.environ, GLOO_SOCKET_IFNAME="lo"),
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    digests = re.findall(r"rank (\d) of 2: final weights sha256 (\w+)", proc.stderr)
-    assert sorted(rank for rank, _ in digests) == ["0", "1"] and len({d for _, d in digests}) == 1, digests
+    digests = torchrun_digests("train", "teacher", "--size", "tiny", "--envs", "8", "--rollout", "16", "--minibatches", "4", "--lr", "1e-2",
+                               "--target-kl", "1e-4", "--steps", "1024", "--out", str(out))  # fmt: skip
+    assert digests[0] == digests[1]
     assert read_card(out, "policy")["meta"]["train"]["ppo"]["target_kl"] == 1e-4
 
 

@@ -192,6 +192,7 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
     starts = torch.ones(config.num_envs, dtype=torch.bool, device=device)
     t_start = time.monotonic()
     reduce_grads = _reduce_grads(model, info)
+    reduce_mean = (lambda value: all_reduce_mean(value, info)) if info.enabled else None  # --target-kl's stop, decided on all processes
     while iteration < total_iterations:
         t_iter = time.monotonic()
         env.stage_seconds = dict.fromkeys(env.stage_seconds, 0.0)
@@ -200,8 +201,7 @@ def _train(config: PolicyTrainConfig, info: DistInfo, device: torch.device) -> P
         model.train()
         warming_up = iteration < config.critic_warmup_iterations
         losses = ppo_update(model, critic_optimizer if warming_up else optimizer, rollout, config.ppo, update_generator,
-                            reduce_grads, critic_only=warming_up,
-                            reduce_mean=(lambda value: all_reduce_mean(value, info)) if info.enabled else None)  # fmt: skip
+                            reduce_grads, critic_only=warming_up, reduce_mean=reduce_mean)  # fmt: skip
         iteration += 1
         env_steps += steps_per_iteration
         elapsed = time.monotonic() - t_iter

@@ -67,7 +67,7 @@ class StageRunner:
             held = self.state["config"]
             differ = sorted(k for k in held.keys() | settings.keys() if held.get(k) != settings.get(k))
             raise ValueError(f"{out} holds a pipeline run with other settings (differing: {', '.join(differ)}): use a new --out")
-        self._save()
+        self.save()
         self.call_end = time.monotonic() + (call_minutes * 60.0 if call_minutes else float("inf"))
         self.reserve_s = min(CALL_RESERVE_S, 6.0 * call_minutes) if call_minutes else CALL_RESERVE_S
 
@@ -92,7 +92,7 @@ class StageRunner:
         finally:  # failed or stopped too: the time counts, and a resumable stage continues what it wrote
             elapsed = time.monotonic() - t0
             self.state["spent_s"][name] = round(spent + elapsed, 1)
-            self._save()
+            self.save()
         if result is not None:
             self.state["results"][name] = result
         # Finished unless the call's limit stopped it: it had no limit, it ended on its own before
@@ -101,12 +101,12 @@ class StageRunner:
                     or (budget_s is not None and spent + elapsed >= budget_s - self.reserve_s))  # fmt: skip
         if finished:
             self.state["done"].append(name)
-        self._save()
+        self.save()
         if not finished:
             log.info("pipeline: this call's time is up during %s; run the same command again to continue", name)
         return finished
 
-    def _save(self) -> None:
+    def save(self) -> None:
         self.path.write_text(json.dumps(self.state, indent=2, default=str))
 
 
@@ -351,6 +351,34 @@ def _out_of(argv: tuple[str, ...]) -> str | None:
     return next((argv[i + 1] for i in range(len(argv) - 1) if argv[i] in ("--out", "-o")), None)
 
 
+def _reads(stage: RecipeStage, out: Path) -> list[Path]:
+    """The paths under the run's directory ``out`` that ``stage`` reads: its arguments there other
+    than its own --out, and the training state there when it continues an earlier stage's run."""
+    from training.checkpoint import TRAIN_STATE
+
+    own = _out_of(stage.argv)
+    paths = [Path(a) for a in stage.argv if a != own and Path(a) != out and Path(a).is_relative_to(out)]
+    return paths + ([Path(own) / TRAIN_STATE] if stage.continues is not None else [])
+
+
+def _redo_lost_outputs(recipe: Recipe, out: Path, runner: StageRunner) -> None:
+    """Mark not done every finished stage whose output a stage still to run reads but is not there
+    (the run's directory carried to another machine without its datasets, say), and the stages
+    that wrote to the same --out before it: the run makes them again, in the recipe's order."""
+    done = runner.state["done"]
+    while True:
+        todo = [s for s in recipe.stages if s.name not in done]
+        lost = {p for s in todo for p in _reads(s, out) if not p.exists()}
+        redo = [s for s in recipe.stages if s.name in done and (o := _out_of(s.argv)) is not None
+                and any(p == Path(o) or p.is_relative_to(o) for p in lost)]  # fmt: skip
+        if not redo:
+            break
+        for stage in redo:
+            log.warning("pipeline: %s, which %s wrote, is gone: running %s again", _out_of(stage.argv), stage.name, stage.name)
+            done.remove(stage.name)
+    runner.save()
+
+
 def _stage_argv(stage: RecipeStage, limit_s: float | None, resume: bool) -> list[str]:
     return [*stage.argv, *(["--minutes", f"{limit_s / 60.0:.3f}"] if limit_s is not None else []), *(["--resume"] if resume else [])]
 
@@ -363,6 +391,7 @@ def run_recipe(recipe: Recipe, out_dir: str | Path, call_minutes: float | None =
     out = Path(out_dir)
     runner = StageRunner(out, {"recipe": recipe.name, "recipe_text": recipe.text}, call_minutes)
     (out / "logs").mkdir(exist_ok=True)
+    _redo_lost_outputs(recipe, out, runner)
 
     def command(stage: RecipeStage):
         def work(limit_s, resume):

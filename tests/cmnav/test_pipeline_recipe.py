@@ -3,6 +3,7 @@ by --call-minutes, the training stages continued with --resume; bad recipes refu
 stage runs."""
 
 import json
+import shutil
 import subprocess
 import sys
 import time
@@ -11,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from cmnav.cli import build_parser
-from cmnav.pipeline import load_recipe, recipe_names
+from cmnav.pipeline import StageRunner, _redo_lost_outputs, load_recipe, recipe_names
 from tests.e2e.test_sitl_stop import _children
 
 REPO = Path(__file__).resolve().parents[2]
@@ -115,6 +116,46 @@ def test_a_bad_recipe_is_refused_before_any_stage_runs(tmp_path, change, message
     proc = _pipeline(recipe, tmp_path / "run")
     assert proc.returncode == 2 and message in proc.stderr, proc.stderr
     assert not (tmp_path / "run" / "pipeline_state.json").exists()  # nothing ran
+
+
+def test_a_finished_stage_whose_output_is_gone_runs_again_when_a_later_stage_reads_it(tmp_path):
+    # The run's directory carried to a new machine without its datasets (models/pipeline-default:
+    # the datasets are not committed), in the middle of the run: the stages still to run get them back.
+    recipe = tmp_path / "lost.toml"
+    recipe.write_text(TINY_RECIPE.split("[[stage]]\nname = \"teacher\"")[0] + (
+        '[[stage]]\nname = "table1"\ncommand = "eval cmwae --checkpoint {out}/encoder --data {out}/data --max-images 4 '
+        '--out {out}/encoder/eval"\n'))  # fmt: skip
+    out = tmp_path / "run"
+    assert _pipeline(recipe, out).returncode == 0
+    state_path = out / "pipeline_state.json"
+    state = json.loads(state_path.read_text())
+    assert state["done"] == ["dataset", "encoder", "table1"]
+    state["done"].remove("table1")  # as if the call had stopped before it
+    state_path.write_text(json.dumps(state))
+    shutil.rmtree(out / "data")
+    proc = _pipeline(recipe, out)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert f"{out / 'data'}, which dataset wrote, is gone: running dataset again" in proc.stderr
+    runs = {name: (out / "logs" / f"{name}.log").read_text().count("\n$ cmnav") + 1 for name in ("dataset", "encoder", "table1")}
+    assert runs == {"dataset": 2, "encoder": 1, "table1": 2}, runs  # the encoder's output is there: not made again
+    assert sorted(json.loads(state_path.read_text())["done"]) == ["dataset", "encoder", "table1"]
+    assert (out / "encoder" / "eval" / "table1.json").is_file()
+
+
+def test_a_continued_run_whose_training_state_is_gone_is_made_again_from_its_first_stage(tmp_path):
+    out = tmp_path / "run"
+    (tmp_path / "tiny.toml").write_text(TINY_RECIPE)
+    recipe = load_recipe(str(tmp_path / "tiny.toml"), out, build_parser())
+    runner = StageRunner(out, {"recipe": recipe.name}, None)
+    runner.state["done"] = ["dataset", "encoder", "teacher"]
+    for made in ("data", "encoder", "teacher"):
+        (out / made).mkdir()
+    _redo_lost_outputs(recipe, out, runner)  # teacher-slower continues the teacher's run: it needs its state
+    assert runner.state["done"] == ["dataset", "encoder"]
+    runner.state["done"].append("teacher")
+    (out / "teacher" / "train_state.pt").write_bytes(b"")
+    _redo_lost_outputs(recipe, out, runner)
+    assert runner.state["done"] == ["dataset", "encoder", "teacher"]
 
 
 def test_a_failing_stage_stops_the_run_and_names_its_log(tmp_path):

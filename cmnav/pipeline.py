@@ -49,6 +49,7 @@ BUDGET_SHARES = {"encoder": 0.35, "teacher": 0.30, "policy": 0.25}
 # Time kept back at the end of a call for the checkpoint a training stage writes when it stops:
 # this much, or a tenth of a short call.
 CALL_RESERVE_S = 30.0
+STATE_FILE = "pipeline_state.json"
 
 
 class StageRunner:
@@ -61,7 +62,7 @@ class StageRunner:
 
     def __init__(self, out: Path, settings: dict, call_minutes: float | None):
         out.mkdir(parents=True, exist_ok=True)
-        self.path = out / "pipeline_state.json"
+        self.path = out / STATE_FILE
         self.state = json.loads(self.path.read_text()) if self.path.is_file() else {"done": [], "spent_s": {}, "results": {}}
         if self.state.setdefault("config", settings) != settings:
             held = self.state["config"]
@@ -351,6 +352,27 @@ def _out_of(argv: tuple[str, ...]) -> str | None:
     return next((argv[i + 1] for i in range(len(argv) - 1) if argv[i] in ("--out", "-o")), None)
 
 
+def _accept_grown_recipe(out: Path, recipe: Recipe) -> None:
+    """Let the run in ``out``, begun under an earlier version of ``recipe``, go on under this one when
+    that version's stages are this one's first, unchanged (stages added at the end, comments and
+    description free): its finished stages stand.  Any other change is refused, naming the stage."""
+    import tomllib
+
+    path = out / STATE_FILE
+    state = json.loads(path.read_text()) if path.is_file() else {}
+    held = state.get("config", {})
+    if held.get("recipe") != recipe.name or held.get("recipe_text", recipe.text) == recipe.text:
+        return  # a new run, the same recipe, or another recipe (StageRunner refuses that)
+    before, now = tomllib.loads(held["recipe_text"])["stage"], tomllib.loads(recipe.text)["stage"]
+    if now[: len(before)] != before:
+        changed = next((b.get("name") for b, n in zip(before, now) if b != n), None) or before[len(now)].get("name")
+        raise ValueError(f"{out} holds a run of another version of recipe {recipe.name!r}, whose stage {changed!r} is changed or gone: "
+                         "a run goes on only under stages added at the end; use a new --out")  # fmt: skip
+    log.info("pipeline: recipe %s has %d stage(s) more than when this run began; its finished stages stand", recipe.name, len(now) - len(before))
+    held["recipe_text"] = recipe.text
+    path.write_text(json.dumps(state, indent=2, default=str))
+
+
 def _reads(stage: RecipeStage, out: Path) -> list[Path]:
     """The paths under the run's directory ``out`` that ``stage`` reads: its arguments there other
     than its own --out, and the training state there when it continues an earlier stage's run."""
@@ -386,9 +408,10 @@ def _stage_argv(stage: RecipeStage, limit_s: float | None, resume: bool) -> list
 def run_recipe(recipe: Recipe, out_dir: str | Path, call_minutes: float | None = None, argv: list[str] | None = None) -> dict:
     """Run (or continue) ``recipe`` in ``out_dir``, each stage a `cmnav` process whose output goes
     to ``OUT/logs/STAGE.log``.  Returns the summary; ``done`` is False when ``call_minutes`` stopped
-    it first (the same command continues).  A stage that fails stops the run: what it wrote stays,
-    and the same command retries it."""
+    it first (the same command continues, also under the recipe grown by stages at the end).  A stage
+    that fails stops the run: what it wrote stays, and the same command retries it."""
     out = Path(out_dir)
+    _accept_grown_recipe(out, recipe)
     runner = StageRunner(out, {"recipe": recipe.name, "recipe_text": recipe.text}, call_minutes)
     (out / "logs").mkdir(exist_ok=True)
     _redo_lost_outputs(recipe, out, runner)

@@ -91,10 +91,6 @@ def test_a_recipe_runs_to_the_end_over_several_calls(tmp_path):
 
     PolicyModel(out / "model.onnx")  # what the recipe exported loads in the runtime
 
-    recipe.write_text(TINY_RECIPE.replace("--count 80", "--count 81"))  # another recipe in the same run: refused
-    proc = _pipeline(recipe, out)
-    assert proc.returncode == 2 and "other settings" in proc.stderr and "new --out" in proc.stderr
-
 
 @pytest.mark.parametrize(
     ("change", "message"),
@@ -140,6 +136,30 @@ def test_a_finished_stage_whose_output_is_gone_runs_again_when_a_later_stage_rea
     assert runs == {"dataset": 2, "encoder": 1, "table1": 2}, runs  # the encoder's output is there: not made again
     assert sorted(json.loads(state_path.read_text())["done"]) == ["dataset", "encoder", "table1"]
     assert (out / "encoder" / "eval" / "table1.json").is_file()
+
+
+def test_a_run_goes_on_under_its_recipe_grown_by_stages_at_the_end_and_under_no_other_change(tmp_path):
+    stages = TINY_RECIPE.split("[[stage]]\n")
+    recipe, out = tmp_path / "grows.toml", tmp_path / "run"
+    recipe.write_text("[[stage]]\n".join(stages[:2]))  # the dataset alone
+    assert _pipeline(recipe, out).returncode == 0
+    recipe.write_text("# a comment added\n" + "[[stage]]\n".join(stages[:3]))  # and the encoder after it
+    proc = _pipeline(recipe, out)
+    assert proc.returncode == 0 and "1 stage(s) more than when this run began" in proc.stderr, proc.stderr[-3000:]
+    assert json.loads((out / "pipeline_state.json").read_text())["done"] == ["dataset", "encoder"]
+    assert (out / "logs" / "dataset.log").read_text().count("$ cmnav") == 1  # not run again
+    for change in (("--count 80", "--count 81"), ('name = "encoder"', 'name = "encoder"\nminutes = 1')):
+        recipe.write_text("[[stage]]\n".join(stages[:3]).replace(*change))
+        proc = _pipeline(recipe, out)
+        changed = "dataset" if "count" in change[0] else "encoder"
+        assert proc.returncode == 2 and f"stage {changed!r} is changed or gone" in proc.stderr and "new --out" in proc.stderr, proc.stderr
+    recipe.write_text("[[stage]]\n".join(stages[:2]))  # a stage taken away
+    proc = _pipeline(recipe, out)
+    assert proc.returncode == 2 and "stage 'encoder' is changed or gone" in proc.stderr, proc.stderr
+    other = tmp_path / "other.toml"  # another recipe altogether
+    other.write_text("[[stage]]\n".join(stages[:3]))
+    proc = _pipeline(other, out)
+    assert proc.returncode == 2 and "other settings (differing: recipe, " in proc.stderr and "new --out" in proc.stderr, proc.stderr
 
 
 def test_a_continued_run_whose_training_state_is_gone_is_made_again_from_its_first_stage(tmp_path):

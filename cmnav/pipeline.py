@@ -37,6 +37,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -49,7 +50,6 @@ BUDGET_SHARES = {"encoder": 0.35, "teacher": 0.30, "policy": 0.25}
 # Time kept back at the end of a call for the checkpoint a training stage writes when it stops:
 # this much, or a tenth of a short call.
 CALL_RESERVE_S = 30.0
-STATE_FILE = "pipeline_state.json"
 
 
 class StageRunner:
@@ -58,16 +58,18 @@ class StageRunner:
     ``OUT/pipeline_state.json`` records the finished stages, the wall-clock each has spent and what
     each returned.  A stage with a time budget gets what is left of it; a resumable one is also cut
     to what is left of this call (``call_minutes``) and continues (``resume=True``) in the next.
+    A run held under other settings continues only where ``adopt(held_settings)`` says it may.
     """
 
-    def __init__(self, out: Path, settings: dict, call_minutes: float | None):
+    def __init__(self, out: Path, settings: dict, call_minutes: float | None, adopt: Callable[[dict], bool] | None = None):
         out.mkdir(parents=True, exist_ok=True)
-        self.path = out / STATE_FILE
+        self.path = out / "pipeline_state.json"
         self.state = json.loads(self.path.read_text()) if self.path.is_file() else {"done": [], "spent_s": {}, "results": {}}
-        if self.state.setdefault("config", settings) != settings:
-            held = self.state["config"]
+        held = self.state.setdefault("config", settings)
+        if held != settings and not (adopt is not None and adopt(held)):
             differ = sorted(k for k in held.keys() | settings.keys() if held.get(k) != settings.get(k))
             raise ValueError(f"{out} holds a pipeline run with other settings (differing: {', '.join(differ)}): use a new --out")
+        self.state["config"] = settings
         self.save()
         self.call_end = time.monotonic() + (call_minutes * 60.0 if call_minutes else float("inf"))
         self.reserve_s = min(CALL_RESERVE_S, 6.0 * call_minutes) if call_minutes else CALL_RESERVE_S
@@ -352,25 +354,22 @@ def _out_of(argv: tuple[str, ...]) -> str | None:
     return next((argv[i + 1] for i in range(len(argv) - 1) if argv[i] in ("--out", "-o")), None)
 
 
-def _accept_grown_recipe(out: Path, recipe: Recipe) -> None:
-    """Let the run in ``out``, begun under an earlier version of ``recipe``, go on under this one when
-    that version's stages are this one's first, unchanged (stages added at the end, comments and
-    description free): its finished stages stand.  Any other change is refused, naming the stage."""
+def _grown_from(held: dict, recipe: Recipe, out: Path) -> bool:
+    """Whether the run in ``out``, held under ``held`` settings, is one of an earlier version of
+    ``recipe`` whose stages are this one's first, unchanged (stages added at the end, comments and
+    description free): then it goes on, its finished stages standing.  Another recipe: False (the
+    runner refuses it); a stage of this one changed or gone: refused here, naming the stage."""
     import tomllib
 
-    path = out / STATE_FILE
-    state = json.loads(path.read_text()) if path.is_file() else {}
-    held = state.get("config", {})
-    if held.get("recipe") != recipe.name or held.get("recipe_text", recipe.text) == recipe.text:
-        return  # a new run, the same recipe, or another recipe (StageRunner refuses that)
+    if held.get("recipe") != recipe.name:
+        return False
     before, now = tomllib.loads(held["recipe_text"])["stage"], tomllib.loads(recipe.text)["stage"]
     if now[: len(before)] != before:
         changed = next((b.get("name") for b, n in zip(before, now) if b != n), None) or before[len(now)].get("name")
         raise ValueError(f"{out} holds a run of another version of recipe {recipe.name!r}, whose stage {changed!r} is changed or gone: "
                          "a run goes on only under stages added at the end; use a new --out")  # fmt: skip
     log.info("pipeline: recipe %s has %d stage(s) more than when this run began; its finished stages stand", recipe.name, len(now) - len(before))
-    held["recipe_text"] = recipe.text
-    path.write_text(json.dumps(state, indent=2, default=str))
+    return True
 
 
 def _reads(stage: RecipeStage, out: Path) -> list[Path]:
@@ -411,8 +410,8 @@ def run_recipe(recipe: Recipe, out_dir: str | Path, call_minutes: float | None =
     it first (the same command continues, also under the recipe grown by stages at the end).  A stage
     that fails stops the run: what it wrote stays, and the same command retries it."""
     out = Path(out_dir)
-    _accept_grown_recipe(out, recipe)
-    runner = StageRunner(out, {"recipe": recipe.name, "recipe_text": recipe.text}, call_minutes)
+    runner = StageRunner(out, {"recipe": recipe.name, "recipe_text": recipe.text}, call_minutes,
+                         adopt=lambda held: _grown_from(held, recipe, out))
     (out / "logs").mkdir(exist_ok=True)
     _redo_lost_outputs(recipe, out, runner)
 
